@@ -1,0 +1,77 @@
+"""slcvjax: calibrate and measure with a structured-light catadioptric vision sensor.
+
+Precision policy: calibration is done in float64.  Importing ``slcvjax`` turns on
+``jax_enable_x64``; arrays made by the library are float64 unless a benchmark
+documents a float32 path as safe.  Units are millimetres and radians.
+"""
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+from ._camera import (  # noqa: E402
+    Camera,
+    distort,
+    in_image,
+    pixel_to_ray,
+    project,
+    project_normalized,
+    project_points,
+    undistort,
+)
+from ._lasers import Lasers, line_plane_intersection  # noqa: E402
+from ._mirror import (  # noqa: E402
+    ConeMirror,
+    MirrorProjection,
+    MirrorRay,
+    RayHit,
+    back_project,
+    intersect,
+    project_through_mirror,
+    reflect,
+    solve_mirror_point,
+    surface_normal,
+)
+from ._pose import Pose, so3_exp, so3_log  # noqa: E402
+from ._rig import (  # noqa: E402
+    Rig,
+    laser_spot_cam,
+    project_board_points,
+    project_direct,
+    project_rim,
+    project_spots,
+)
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "Camera",
+    "ConeMirror",
+    "Lasers",
+    "MirrorProjection",
+    "MirrorRay",
+    "Pose",
+    "RayHit",
+    "Rig",
+    "back_project",
+    "distort",
+    "in_image",
+    "intersect",
+    "laser_spot_cam",
+    "line_plane_intersection",
+    "pixel_to_ray",
+    "project",
+    "project_board_points",
+    "project_direct",
+    "project_normalized",
+    "project_points",
+    "project_rim",
+    "project_spots",
+    "project_through_mirror",
+    "reflect",
+    "so3_exp",
+    "so3_log",
+    "solve_mirror_point",
+    "surface_normal",
+    "undistort",
+]

@@ -1,0 +1,236 @@
+"""The cone mirror: ray intersection, back-projection and projection through it.
+
+Geometry (DESIGN section 2): apex ``A`` and unit axis ``a`` in the camera
+frame, the axis pointing from the apex into the cone towards the base circle,
+base radius ``r`` and height ``h``; with ``k = r/h`` and ``q = X - A`` the
+surface is ``|q - (q.a)a|^2 = k^2 (q.a)^2`` with ``0 <= q.a <= h``.  The
+outward normal is the normalised gradient ``q - (1 + k^2)(q.a) a``.
+
+Projection (3D point -> pixel) is not closed form because the camera centre is
+not on the axis.  A mirror point is written ``M(s, theta) = A + s a + k s u(theta)``
+with ``u(theta) = cos(theta) e1 + sin(theta) e2``; the law of reflection says
+that ``(M - O)/|M - O| + (M - P)/|M - P|`` is parallel to the normal, i.e.
+orthogonal to both tangents ``t_s`` and ``t_theta`` (Fermat: the optical path
+``|M - O| + |M - P|`` is stationary).  Newton solves these two equations from
+the on-axis closed form (reflection of the camera across the generatrix in the
+axial plane of the target); the derivative is implicit (see ``_newton``).
+"""
+
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float
+
+from ._camera import Camera, in_image, pixel_to_ray, project
+from ._newton import newton_implicit, newton_residual_norm
+from ._safe import orthonormal_basis, safe_div, safe_normalize, safe_sqrt
+
+
+class ConeMirror(eqx.Module):
+    """A cone mirror seen from its apex side.
+
+    Attributes:
+        apex: (3,) apex in the camera frame, mm.
+        axis: (3,) unit axis from the apex towards the base circle.
+        radius: base radius r in mm (0-d array; from the datasheet, not estimated).
+        height: cone height h in mm (0-d array; from the datasheet, not estimated).
+
+    The pose has 5 degrees of freedom (the cone is symmetric about its axis);
+    :meth:`retract` takes a 5-vector.
+    """
+
+    apex: Float[Array, "3"]
+    axis: Float[Array, "3"]
+    radius: Float[Array, ""]
+    height: Float[Array, ""]
+
+    @staticmethod
+    def create(apex, axis, radius, height) -> "ConeMirror":
+        axis = jnp.asarray(axis, dtype=float)
+        return ConeMirror(
+            jnp.asarray(apex, dtype=float),
+            axis / jnp.linalg.norm(axis),
+            jnp.asarray(radius, dtype=float),
+            jnp.asarray(height, dtype=float),
+        )
+
+    @property
+    def k(self) -> Float[Array, ""]:
+        """The slope ``r / h`` (tangent of the half-angle)."""
+        return self.radius / self.height
+
+    def retract(self, delta: Float[Array, "5"]) -> "ConeMirror":
+        """``apex += delta[:3]``; the axis tilts by ``delta[3:]`` (radians) in its tangent plane."""
+        e1, e2 = orthonormal_basis(self.axis)
+        axis = safe_normalize(self.axis + delta[3] * e1 + delta[4] * e2)
+        return ConeMirror(self.apex + delta[:3], axis, self.radius, self.height)
+
+    def rim_points(self, angles: Float[Array, " n"]) -> Float[Array, "n 3"]:
+        """Points of the base circle (the rim) at the given azimuths, camera frame."""
+        e1, e2 = orthonormal_basis(self.axis)
+        centre = self.apex + self.height * self.axis
+        return centre + self.radius * (jnp.cos(angles)[:, None] * e1 + jnp.sin(angles)[:, None] * e2)
+
+
+def surface_normal(mirror: ConeMirror, x: Float[Array, "3"]) -> Float[Array, "3"]:
+    """Outward unit normal of the cone at a surface point (zero vector at the apex)."""
+    q = x - mirror.apex
+    grad = q - (1.0 + mirror.k**2) * jnp.dot(q, mirror.axis) * mirror.axis
+    return safe_normalize(grad)
+
+
+def reflect(d: Float[Array, "3"], n: Float[Array, "3"]) -> Float[Array, "3"]:
+    """Mirror reflection of direction ``d`` about the unit normal ``n``."""
+    return d - 2.0 * jnp.dot(d, n) * n
+
+
+class RayHit(NamedTuple):
+    """Where a ray meets the mirror: ray parameter, point, and validity."""
+
+    t: Float[Array, ""]
+    point: Float[Array, "3"]
+    valid: Bool[Array, ""]
+
+
+def intersect(mirror: ConeMirror, origin: Float[Array, "3"], direction: Float[Array, "3"]) -> RayHit:
+    """First intersection of the ray ``origin + t d`` (t > 0) with the finite cone.
+
+    The quadric ``|w + t d|^2 - (1 + k^2)((w + t d).a)^2 = 0`` (``w = origin - apex``)
+    is solved with the cancellation-free quadratic formula; a root counts where
+    ``t > 0`` and ``0 <= s <= h`` (``s`` the axial coordinate).  A miss, a
+    tangent ray or a ray parallel to a generatrix gives ``valid = False``.
+    """
+    a = mirror.axis
+    c = 1.0 + mirror.k**2
+    w = origin - mirror.apex
+    da, wa = jnp.dot(direction, a), jnp.dot(w, a)
+    qa = jnp.dot(direction, direction) - c * da * da
+    qb = 2.0 * (jnp.dot(w, direction) - c * wa * da)
+    qc = jnp.dot(w, w) - c * wa * wa
+    disc = qb * qb - 4.0 * qa * qc
+    sq = safe_sqrt(disc)
+    q = -0.5 * (qb + jnp.where(qb >= 0.0, sq, -sq))
+    t1, t2 = safe_div(q, qa), safe_div(qc, q)
+
+    def ok(t):
+        s = wa + t * da
+        return (disc > 0.0) & (t > 1e-12) & (s >= 0.0) & (s <= mirror.height)
+
+    ok1, ok2 = ok(t1), ok(t2)
+    first = jnp.where(ok1 & ok2, jnp.minimum(t1, t2), jnp.where(ok1, t1, t2))
+    valid = ok1 | ok2
+    t = jnp.where(valid, first, 0.0)
+    return RayHit(t, origin + t * direction, valid)
+
+
+class MirrorRay(NamedTuple):
+    """A back-projected pixel: the mirror point, the reflected unit direction, validity."""
+
+    point: Float[Array, "3"]
+    direction: Float[Array, "3"]
+    valid: Bool[Array, ""]
+
+
+def back_project(cam: Camera, mirror: ConeMirror, uv: Float[Array, "2"]) -> MirrorRay:
+    """Pixel -> reflected ray (closed form): undistort, intersect the cone, reflect.
+
+    Camera frame, mm.  ``valid`` is False where the pixel's ray misses the
+    mirror, meets it from inside, or the undistortion did not converge.
+    """
+    d, ok_cam = pixel_to_ray(cam, uv)
+    hit = intersect(mirror, jnp.zeros(3), d)
+    n = surface_normal(mirror, hit.point)
+    out = reflect(d, n)
+    valid = ok_cam & hit.valid & (jnp.dot(d, n) < 0.0)
+    return MirrorRay(hit.point, out, valid)
+
+
+def _mirror_point(s, theta, apex, axis, k):
+    e1, e2 = orthonormal_basis(axis)
+    u = jnp.cos(theta) * e1 + jnp.sin(theta) * e2
+    return apex + s * axis + k * s * u, u, e1, e2
+
+
+def _reflection_residual(x, params):
+    """The two tangential components of ``(M-O)/|M-O| + (M-P)/|M-P|`` at ``M(s, theta)``."""
+    apex, axis, k, target = params
+    s, theta = x[0], x[1]
+    m, u, e1, e2 = _mirror_point(s, theta, apex, axis, k)
+    bis = safe_normalize(m) + safe_normalize(m - target)
+    t_s = (axis + k * u) / jnp.sqrt(1.0 + k * k)
+    t_th = -jnp.sin(theta) * e1 + jnp.cos(theta) * e2
+    return jnp.stack([jnp.dot(bis, t_s), jnp.dot(bis, t_th)])
+
+
+def _initial_guess(mirror: ConeMirror, target):
+    """On-axis closed form: reflect the camera across the generatrix in the target's axial plane."""
+    a, k = mirror.axis, mirror.k
+    e1, e2 = orthonormal_basis(a)
+    z_cam = jnp.dot(-mirror.apex, a)  # the camera centre's axial coordinate (< 0)
+    q = target - mirror.apex
+    z_p = jnp.dot(q, a)
+    radial = q - z_p * a
+    rho_p = jnp.sqrt(jnp.sum(radial**2) + 1e-30)
+    theta = jnp.arctan2(jnp.dot(radial, e2), jnp.dot(radial, e1))
+    g = jnp.stack([k, jnp.ones_like(k)]) / jnp.sqrt(1.0 + k * k)  # generatrix in (rho, z)
+    cam2 = jnp.stack([jnp.zeros_like(z_cam), z_cam])
+    img = 2.0 * jnp.dot(cam2, g) * g - cam2
+    delta = jnp.stack([rho_p, z_p]) - img
+    lam = safe_div(-(img[0] - k * img[1]), delta[0] - k * delta[1])
+    s0 = img[1] + lam * delta[1]
+    s0 = jnp.clip(s0, 0.02 * mirror.height, 1.5 * mirror.height)
+    return jnp.stack([s0, theta])
+
+
+class MirrorProjection(NamedTuple):
+    """A point projected through the mirror: pixel, mirror point, and validity flags."""
+
+    uv: Float[Array, "2"]
+    mirror_point: Float[Array, "3"]
+    valid: Bool[Array, ""]
+
+
+def solve_mirror_point(
+    mirror: ConeMirror, p_cam: Float[Array, "3"], iters: int = 10, implicit: bool = True
+) -> tuple[Float[Array, "3"], Bool[Array, ""]]:
+    """The mirror point whose reflection sends the camera's ray through ``p_cam``.
+
+    Returns ``(M, valid)`` where ``valid`` says Newton converged to a point of
+    the finite cone (``0 < s <= h``) that faces both the camera and the target.
+    Implicit derivative (``implicit=True``) or unrolled (baseline).
+    """
+    params = (mirror.apex, mirror.axis, mirror.k, p_cam)
+    x0 = _initial_guess(mirror, p_cam)
+    x = newton_implicit(_reflection_residual, x0, params, iters, implicit=implicit)
+    m = _mirror_point(x[0], x[1], mirror.apex, mirror.axis, mirror.k)[0]
+    n = surface_normal(mirror, m)
+    s = jax.lax.stop_gradient(x[0])
+    valid = (
+        (newton_residual_norm(_reflection_residual, x, params) < 1e-9)
+        & (s > 1e-9)
+        & (s <= mirror.height * (1.0 + 1e-12))
+        & (jnp.dot(n, -m) > 0.0)
+        & (jnp.dot(n, p_cam - m) > 0.0)
+    )
+    return m, valid
+
+
+def project_through_mirror(
+    cam: Camera,
+    mirror: ConeMirror,
+    p_cam: Float[Array, "3"],
+    iters: int = 10,
+    implicit: bool = True,
+) -> MirrorProjection:
+    """Pixel at which a 3D point (camera frame, mm) is seen through the mirror.
+
+    ``valid`` is False where no reflection path exists on the finite cone, the
+    point is behind the mirror's tangent plane, or the pixel is off the sensor;
+    ``uv`` is then finite but meaningless, and gradients stay finite.
+    """
+    m, ok = solve_mirror_point(mirror, p_cam, iters=iters, implicit=implicit)
+    uv, ok_cam = project(cam, m)
+    valid = ok & ok_cam & in_image(cam, jax.lax.stop_gradient(uv))
+    return MirrorProjection(jnp.where(valid, uv, 0.0), m, valid)

@@ -1,0 +1,88 @@
+"""The rig: camera, cone mirror and lasers as one pytree, and its forward model."""
+
+import equinox as eqx
+import jax
+from jaxtyping import Array, Bool, Float
+
+from ._camera import Camera, in_image, project
+from ._lasers import Lasers, line_plane_intersection
+from ._mirror import ConeMirror, project_through_mirror
+from ._pose import Pose
+
+CAMERA_DOF = 9
+MIRROR_DOF = 5
+LASER_DOF = 4
+POSE_DOF = 6
+
+
+class Rig(eqx.Module):
+    """Everything calibrated about the sensor: camera, mirror and lasers.
+
+    ``tangent_dim`` is ``9 + 5 + 4 N``; :meth:`retract` takes a flat increment
+    in the order camera (9), mirror (5), lasers (N x 4, row-major).
+    """
+
+    camera: Camera
+    mirror: ConeMirror
+    lasers: Lasers
+
+    @property
+    def tangent_dim(self) -> int:
+        return CAMERA_DOF + MIRROR_DOF + LASER_DOF * self.lasers.n
+
+    def retract(self, delta: Float[Array, " d"]) -> "Rig":
+        c, m = CAMERA_DOF, CAMERA_DOF + MIRROR_DOF
+        return Rig(
+            self.camera.retract(delta[:c]),
+            self.mirror.retract(delta[c:m]),
+            self.lasers.retract(delta[m:].reshape(-1, LASER_DOF)),
+        )
+
+
+def project_board_points(
+    rig: Rig, T_cam_board: Pose, points_board: Float[Array, "m 3"], implicit: bool = True
+) -> tuple[Float[Array, "m 2"], Bool[Array, " m"]]:
+    """Pixels of board points seen through the mirror, and their validity."""
+    points_cam = T_cam_board.apply(points_board)
+    res = jax.vmap(lambda p: project_through_mirror(rig.camera, rig.mirror, p, implicit=implicit))(points_cam)
+    return res.uv, res.valid
+
+
+def project_spots(
+    rig: Rig, T_cam_board: Pose, laser_ids: Float[Array, " s"], implicit: bool = True
+) -> tuple[Float[Array, "s 2"], Bool[Array, " s"]]:
+    """Pixels of the spots that the given lasers make on a board's plane (through the mirror)."""
+
+    def one(i):
+        x, ok = line_plane_intersection(rig.lasers.points[i], rig.lasers.directions[i], T_cam_board)
+        res = project_through_mirror(rig.camera, rig.mirror, x, implicit=implicit)
+        return res.uv, ok & res.valid
+
+    return jax.vmap(one)(laser_ids)
+
+
+def project_rim(rig: Rig, angles: Float[Array, " n"]) -> tuple[Float[Array, "n 2"], Bool[Array, " n"]]:
+    """Pixels of rim points (seen directly, not through the mirror)."""
+
+    def one(p):
+        uv, ok = project(rig.camera, p)
+        return uv, ok & in_image(rig.camera, uv)
+
+    return jax.vmap(one)(rig.mirror.rim_points(angles))
+
+
+def project_direct(
+    camera: Camera, T_cam_board: Pose, points_board: Float[Array, "m 3"]
+) -> tuple[Float[Array, "m 2"], Bool[Array, " m"]]:
+    """Pixels of board points seen directly (a mirror-free calibration view)."""
+
+    def one(p):
+        uv, ok = project(camera, p)
+        return uv, ok & in_image(camera, uv)
+
+    return jax.vmap(one)(T_cam_board.apply(points_board))
+
+
+def laser_spot_cam(rig: Rig, laser: int, T_cam_board: Pose) -> tuple[Array, Array]:
+    """3D spot (camera frame) of one laser on a board's plane."""
+    return line_plane_intersection(rig.lasers.points[laser], rig.lasers.directions[laser], T_cam_board)
