@@ -101,9 +101,7 @@ def _undistort_residual(xy, theta):
     return distort(dist, xy) - target
 
 
-def undistort(
-    cam: Camera, uv: Float[Array, "2"], iters: int = 12
-) -> tuple[Float[Array, "2"], Bool[Array, ""]]:
+def undistort(cam: Camera, uv: Float[Array, "2"], iters: int = 12) -> tuple[Float[Array, "2"], Bool[Array, ""]]:
     """Undistorted normalised point of one pixel (the inverse of :func:`project_normalized`).
 
     Newton on the distortion model from the distorted point, with an implicit

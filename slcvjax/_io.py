@@ -227,9 +227,7 @@ def read_observations(path: str | os.PathLike) -> Observations:
 
     def board_points(name: Any, where: str) -> np.ndarray:
         if not isinstance(name, str) or name not in boards:
-            ctx.fail(
-                where, f"unknown board {json.dumps(name)} (known: {', '.join(sorted(boards)) or 'none'})"
-            )
+            ctx.fail(where, f"unknown board {json.dumps(name)} (known: {', '.join(sorted(boards)) or 'none'})")
         return boards[name]
 
     cal_views = []
@@ -292,8 +290,7 @@ def observations_to_json(obs: Observations) -> dict:
         "n_lasers": int(obs.n_lasers),
         "boards": {n: {"points": np.asarray(p, float).tolist()} for n, p in obs.boards.items()},
         "calibration_views": [
-            {"name": v.name, "board": v.board, "pixels": _px_list(v.pixels, v.seen)}
-            for v in obs.calibration_views
+            {"name": v.name, "board": v.board, "pixels": _px_list(v.pixels, v.seen)} for v in obs.calibration_views
         ],
         "views": [
             {
@@ -380,9 +377,7 @@ def calibration_to_json(cal: Calibration) -> dict:
         "board_poses": [{b: _pose_json(p) for b, p in view.items()} for view in cal.board_poses],
     }
     if cal.calibration_view_poses is not None:
-        doc["calibration_view_poses"] = [
-            None if p is None else _pose_json(p) for p in cal.calibration_view_poses
-        ]
+        doc["calibration_view_poses"] = [None if p is None else _pose_json(p) for p in cal.calibration_view_poses]
     doc.update(cal.extra)
     return doc
 

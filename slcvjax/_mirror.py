@@ -4,7 +4,8 @@ Geometry (DESIGN section 2): apex ``A`` and unit axis ``a`` in the camera
 frame, the axis pointing from the apex into the cone towards the base circle,
 base radius ``r`` and height ``h``; with ``k = r/h`` and ``q = X - A`` the
 surface is ``|q - (q.a)a|^2 = k^2 (q.a)^2`` with ``0 <= q.a <= h``.  The
-outward normal is the normalised gradient ``q - (1 + k^2)(q.a) a``.
+outward normal is the normalised gradient ``q - (1 + k^2)(q.a) a`` (see
+:func:`surface_normal` for the form in which it is evaluated).
 
 Projection (3D point -> pixel) is not closed form because the camera centre is
 not on the axis.  A mirror point is written ``M(s, theta) = A + s a + k s u(theta)``
@@ -25,7 +26,7 @@ from jaxtyping import Array, Bool, Float
 
 from ._camera import Camera, in_image, pixel_to_ray, project
 from ._newton import newton_implicit, newton_residual_norm
-from ._safe import orthonormal_basis, safe_div, safe_normalize, safe_sqrt
+from ._safe import orthonormal_basis, safe_div, safe_norm, safe_normalize, safe_sqrt
 
 
 class ConeMirror(eqx.Module):
@@ -75,10 +76,16 @@ class ConeMirror(eqx.Module):
 
 
 def surface_normal(mirror: ConeMirror, x: Float[Array, "3"]) -> Float[Array, "3"]:
-    """Outward unit normal of the cone at a surface point (zero vector at the apex)."""
+    """Outward unit normal of the cone at a surface point.
+
+    On the surface the quadric's gradient ``q - (1 + k^2)(q.a) a`` has the direction
+    ``u - k a`` where ``u`` is the unit radial vector of ``q``; that form is used because
+    it does not amplify a point's tiny distance off the surface near the apex.  At the
+    apex itself (no radial direction) it returns ``-a``.
+    """
     q = x - mirror.apex
-    grad = q - (1.0 + mirror.k**2) * jnp.dot(q, mirror.axis) * mirror.axis
-    return safe_normalize(grad)
+    u = safe_normalize(q - jnp.dot(q, mirror.axis) * mirror.axis)
+    return safe_normalize(u - mirror.k * mirror.axis)
 
 
 def reflect(d: Float[Array, "3"], n: Float[Array, "3"]) -> Float[Array, "3"]:
@@ -122,6 +129,15 @@ def intersect(mirror: ConeMirror, origin: Float[Array, "3"], direction: Float[Ar
     first = jnp.where(ok1 & ok2, jnp.minimum(t1, t2), jnp.where(ok1, t1, t2))
     valid = ok1 | ok2
     t = jnp.where(valid, first, 0.0)
+    # one Newton step on the signed distance |q_perp| - k s polishes the root where the
+    # quadratic's coefficients cancel (rays near the apex)
+    qv = w + t * direction
+    s = jnp.dot(qv, a)
+    perp = qv - s * a
+    rho = safe_norm(perp)
+    dist = rho - mirror.k * s
+    slope = safe_div(jnp.dot(perp, direction - da * a), rho) - mirror.k * da
+    t = t - jnp.where(valid & (jnp.abs(slope) > 1e-6), safe_div(dist, slope), 0.0)
     return RayHit(t, origin + t * direction, valid)
 
 

@@ -172,9 +172,7 @@ def _spots_all(rig: Rig, poses_R, poses_t):
         return lam, ok & (jnp.abs(denom) > 1e-6), res.uv, res.valid
 
     per_wall = jax.vmap(one, in_axes=(None, None, 0, 0))
-    return jax.vmap(per_wall, in_axes=(0, 0, None, None))(
-        rig.lasers.points, rig.lasers.directions, poses_R, poses_t
-    )
+    return jax.vmap(per_wall, in_axes=(0, 0, None, None))(rig.lasers.points, rig.lasers.directions, poses_R, poses_t)
 
 
 def simulate(scene: Scene, noise: float = 0.0, seed: int = 0) -> tuple[Observations, Calibration]:
@@ -192,11 +190,7 @@ def simulate(scene: Scene, noise: float = 0.0, seed: int = 0) -> tuple[Observati
     walls = [b for b in scene.boards if b != scene.chess_board]
 
     def noisy(px):
-        return (
-            np.asarray(px, float) + rng.normal(0.0, noise, np.shape(px))
-            if noise > 0
-            else np.asarray(px, float)
-        )
+        return np.asarray(px, float) + rng.normal(0.0, noise, np.shape(px)) if noise > 0 else np.asarray(px, float)
 
     cal_views = []
     for j, pose in enumerate(scene.chess_poses):

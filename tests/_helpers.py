@@ -57,7 +57,5 @@ def central_diff(f, x: np.ndarray, eps: float = 1e-6) -> np.ndarray:
     for idx in np.ndindex(x.shape):
         e = np.zeros_like(x)
         e[idx] = eps
-        out[(...,) + idx] = (np.asarray(f(jnp.asarray(x + e))) - np.asarray(f(jnp.asarray(x - e)))) / (
-            2 * eps
-        )
+        out[(...,) + idx] = (np.asarray(f(jnp.asarray(x + e))) - np.asarray(f(jnp.asarray(x - e)))) / (2 * eps)
     return out

@@ -65,6 +65,7 @@ def test_project_jacobians_agree(rng):
         return sj.project(cam, x)[0]
 
     for f, x in [(f_params, cam.params()), (f_point, p)]:
+        f = jax.jit(f)
         jf = np.asarray(jax.jacfwd(f)(x))
         jr = np.asarray(jax.jacrev(f)(x))
         fd = central_diff(f, np.asarray(x), eps=1e-5)
@@ -79,6 +80,7 @@ def test_undistort_implicit_jacobian_matches_finite_differences(rng):
     def f(params):
         return sj.undistort(cam.with_params(params), uv)[0]
 
+    f = jax.jit(f)
     jf = np.asarray(jax.jacfwd(f)(cam.params()))
     jr = np.asarray(jax.jacrev(f)(cam.params()))
     fd = central_diff(f, np.asarray(cam.params()), eps=1e-6)

@@ -50,9 +50,7 @@ def test_singular_outputs_are_documented_values():
     assert float(safe_div(3.0, 0.0)) == 0.0
 
 
-@pytest.mark.parametrize(
-    "axis", [[0, 0, 1], [1, 0, 0], [0, 1, 0], [1, 1, 1], [0.3, -0.2, 0.9], [-1, 1e-9, 0]]
-)
+@pytest.mark.parametrize("axis", [[0, 0, 1], [1, 0, 0], [0, 1, 0], [1, 1, 1], [0.3, -0.2, 0.9], [-1, 1e-9, 0]])
 def test_orthonormal_basis_is_right_handed(axis):
     a = jnp.asarray(axis, dtype=float)
     a = a / jnp.linalg.norm(a)
