@@ -1,0 +1,85 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import slcvjax as sj
+
+from ._helpers import central_diff
+
+
+def _board(rvec, t):
+    return sj.Pose.from_rvec(np.asarray(rvec, float), np.asarray(t, float))
+
+
+def test_spot_on_a_frontal_plane_closed_form():
+    # plane z = 100 (board frame identity rotation, moved 100 mm forward)
+    pose = _board([0, 0, 0], [0, 0, 100.0])
+    x, ok = sj.line_plane_intersection(jnp.array([1.0, 2.0, 0.0]), jnp.array([0.6, 0.0, 0.8]), pose)
+    assert bool(ok)
+    np.testing.assert_allclose(np.asarray(x), [1.0 + 75.0, 2.0, 100.0], atol=1e-12)
+
+
+def test_spot_lies_on_line_and_plane(rng):
+    pose = _board(rng.normal(size=3), rng.normal(size=3) * 50 + [0, 0, 200])
+    p = jnp.asarray(rng.normal(size=3))
+    n = pose.R[:, 2]
+    d = jnp.asarray(n + 0.3 * rng.normal(size=3))
+    d = d / jnp.linalg.norm(d)
+    x, ok = sj.line_plane_intersection(p, d, pose)
+    assert bool(ok)
+    assert abs(float(jnp.dot(n, x - pose.t))) < 1e-10
+    assert float(jnp.linalg.norm(jnp.cross(x - p, d))) < 1e-10
+
+
+def test_parallel_and_backward_beams_are_invalid_without_nan():
+    pose = _board([0, 0, 0], [0, 0, 100.0])
+    p = jnp.zeros(3)
+    for d in [jnp.array([1.0, 0.0, 0.0]), jnp.array([0.0, 0.0, -1.0])]:
+        x, ok = sj.line_plane_intersection(p, d, pose)
+        assert not bool(ok)
+        assert np.all(np.isfinite(np.asarray(x)))
+        g = jax.jacrev(lambda d: sj.line_plane_intersection(p, d, pose)[0])(d)
+        assert np.all(np.isfinite(np.asarray(g)))
+
+
+def test_retract_is_4_dof_per_line_and_keeps_unit_directions():
+    lasers = sj.Lasers.create([[30.0, 0, 40], [0, 30.0, 40]], [[0.9, 0, -0.45], [0, 0.9, -0.45]])
+
+    def flat(delta):
+        las = lasers.retract(delta.reshape(2, 4))
+        return jnp.concatenate([las.points.ravel(), las.directions.ravel()])
+
+    j = np.asarray(jax.jacfwd(flat)(jnp.zeros(8)))
+    assert np.linalg.matrix_rank(j, tol=1e-9) == 8
+    moved = lasers.retract(jnp.full((2, 4), 0.1))
+    np.testing.assert_allclose(np.linalg.norm(np.asarray(moved.directions), axis=1), 1.0, atol=1e-15)
+
+
+def test_canonical_point_is_the_foot_of_the_perpendicular():
+    lasers = sj.Lasers.create([[30.0, 5.0, 40.0]], [[0.9, 0.1, -0.45]])
+    c = lasers.canonical()
+    assert abs(float(jnp.dot(c.points[0], c.directions[0]))) < 1e-12
+    # still the same line
+    assert float(jnp.linalg.norm(jnp.cross(c.points[0] - lasers.points[0], lasers.directions[0]))) < 1e-12
+
+
+def test_spot_jacobian_matches_finite_differences(rng):
+    pose = _board([0.1, -0.2, 0.05], [5.0, -3.0, 150.0])
+
+    def f(v):
+        return sj.line_plane_intersection(v[:3], v[3:] / jnp.linalg.norm(v[3:]), pose)[0]
+
+    v = jnp.array([1.0, 2.0, 3.0, 0.1, 0.2, 0.95])
+    f = jax.jit(f)
+    np.testing.assert_allclose(jax.jacfwd(f)(v), central_diff(f, np.asarray(v)), rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(jax.jacfwd(f)(v), jax.jacrev(f)(v), atol=1e-12)
+
+
+@pytest.mark.parametrize("n", [1, 3, 17])
+def test_any_number_of_lasers(n):
+    pts = np.zeros((n, 3))
+    dirs = np.tile([0.0, 0.0, 1.0], (n, 1))
+    las = sj.Lasers.create(pts, dirs)
+    assert las.n == n
+    assert las.retract(jnp.zeros((n, 4))).points.shape == (n, 3)
