@@ -49,15 +49,17 @@ class Lasers(eqx.Module):
 
 
 def line_plane_intersection(
-    point: Float[Array, "3"], direction: Float[Array, "3"], T_cam_board: Pose
+    point: Float[Array, "3"], direction: Float[Array, "3"], T_cam_board: Pose, forward_only: bool = True
 ) -> tuple[Float[Array, "3"], Bool[Array, ""]]:
     """Where a laser beam meets the plane ``z = 0`` of a board (camera frame).
 
-    ``valid`` is False when the beam is parallel to the plane (within 1e-9) or
-    the plane lies behind the laser (the light travels along +direction).
+    ``valid`` is False when the beam is parallel to the plane (within 1e-9) or, with
+    ``forward_only``, the plane lies behind ``point`` (the light travels along
+    +direction from an emitter at ``point``).  A calibrated line's point is not its
+    emitter, so the calibration uses ``forward_only=False``.
     """
     n = T_cam_board.R[:, 2]
     denom = jnp.dot(n, direction)
     lam = safe_div(jnp.dot(n, T_cam_board.t - point), denom, eps=1e-9)
-    valid = (jnp.abs(denom) > 1e-9) & (lam > 0.0)
+    valid = (jnp.abs(denom) > 1e-9) & ((lam > 0.0) | (not forward_only))
     return point + lam * direction, valid

@@ -28,7 +28,12 @@ class Packed(eqx.Module):
         spot_pose: (S,) board pose index of each spot's plane.
         spot_laser: (S,) laser index of each spot.
         spot_pixels: (S, 2) observed pixels.
+        rim_pixels: (R, 2) rim edge pixels of all views (the mirror is fixed to the camera).
+        chess_pose: (C,) index into the direct-view poses of each chessboard corner.
+        chess_points: (C, 3) the corner in its board's frame.
+        chess_pixels: (C, 2) its observed pixel.
         pose_keys: ``(view index, board name)`` of each board pose (static).
+        chess_keys: index of the calibration view of each direct-view pose (static).
     """
 
     dot_pose: Int[Array, " D"]
@@ -37,11 +42,24 @@ class Packed(eqx.Module):
     spot_pose: Int[Array, " S"]
     spot_laser: Int[Array, " S"]
     spot_pixels: Float[Array, "S 2"]
+    rim_pixels: Float[Array, "R 2"]
+    chess_pose: Int[Array, " C"]
+    chess_points: Float[Array, "C 3"]
+    chess_pixels: Float[Array, "C 2"]
     pose_keys: tuple = eqx.field(static=True)
+    chess_keys: tuple = eqx.field(static=True)
+
+    @property
+    def n_poses(self) -> int:
+        return len(self.pose_keys)
+
+    @property
+    def n_chess(self) -> int:
+        return len(self.chess_keys)
 
 
-def pack(obs: Observations) -> Packed:
-    """Pack the catadioptric views of ``obs``; a board pose exists per (view, board) seen."""
+def pack(obs: Observations, use_views: bool = True, use_direct: bool = True) -> Packed:
+    """Pack ``obs``: a board pose per (view, board) seen, a pose per direct view with corners."""
     keys: list[tuple[int, str]] = []
     index: dict[tuple[int, str], int] = {}
 
@@ -51,8 +69,8 @@ def pack(obs: Observations) -> Packed:
             keys.append((vi, b))
         return index[(vi, b)]
 
-    dp, dpts, dpx, sp, sl, spx = [], [], [], [], [], []
-    for vi, v in enumerate(obs.views):
+    dp, dpts, dpx, sp, sl, spx, rim = [], [], [], [], [], [], []
+    for vi, v in enumerate(obs.views if use_views else []):
         for b, (px, seen) in v.boards.items():
             if not seen.any():
                 continue
@@ -66,14 +84,32 @@ def pack(obs: Observations) -> Packed:
             sp.append(key(vi, s.board))
             sl.append(s.laser)
             spx.append(s.pixel)
+        rim.append(np.asarray(v.rim, float).reshape(-1, 2))
+    cp, cpts, cpx, ckeys = [], [], [], []
+    for ci, cv in enumerate(obs.calibration_views if use_direct else []):
+        if not cv.seen.any():
+            continue
+        cp.extend([len(ckeys)] * int(cv.seen.sum()))
+        ckeys.append(ci)
+        cpts.append(obs.boards[cv.board][cv.seen])
+        cpx.append(cv.pixels[cv.seen])
+
+    def cat(parts, width):
+        return jnp.asarray(np.concatenate(parts) if parts else np.zeros((0, width)))
+
     return Packed(
         jnp.asarray(np.array(dp, dtype=np.int32)),
-        jnp.asarray(np.concatenate(dpts) if dpts else np.zeros((0, 3))),
-        jnp.asarray(np.concatenate(dpx) if dpx else np.zeros((0, 2))),
+        cat(dpts, 3),
+        cat(dpx, 2),
         jnp.asarray(np.array(sp, dtype=np.int32)),
         jnp.asarray(np.array(sl, dtype=np.int32)),
         jnp.asarray(np.array(spx, dtype=float).reshape(-1, 2)),
+        cat(rim, 2),
+        jnp.asarray(np.array(cp, dtype=np.int32)),
+        cat(cpts, 3),
+        cat(cpx, 2),
         tuple(keys),
+        tuple(ckeys),
     )
 
 
@@ -102,7 +138,9 @@ def spot_residuals(
 
     def one(k, laser, px):
         pose = Pose(poses.R[k], poses.t[k])
-        x, ok = line_plane_intersection(rig.lasers.points[laser], rig.lasers.directions[laser], pose)
+        x, ok = line_plane_intersection(
+            rig.lasers.points[laser], rig.lasers.directions[laser], pose, forward_only=False
+        )
         res = project_through_mirror(rig.camera, rig.mirror, x, implicit=implicit)
         return res.uv - px, ok & res.valid
 

@@ -27,6 +27,7 @@ from ._pose import Pose, so3_exp
 from ._rig import Rig, project_board_points, project_direct, project_rim
 
 PRESETS = ("paper",)
+PITCH_X = 80.0
 
 
 @dataclass
@@ -46,9 +47,9 @@ class Scene:
     info: dict
 
 
-def grid_points(cols: int, rows: int, pitch: float, centred: bool = False) -> np.ndarray:
-    """Board points of a ``cols x rows`` grid (x fastest), z = 0, in mm."""
-    x, y = np.meshgrid(np.arange(cols) * pitch, np.arange(rows) * pitch)
+def grid_points(cols: int, rows: int, pitch: float, centred: bool = False, pitch_y: float | None = None) -> np.ndarray:
+    """Board points of a ``cols x rows`` grid (x fastest), z = 0, in mm (``pitch_y`` defaults to ``pitch``)."""
+    x, y = np.meshgrid(np.arange(cols) * pitch, np.arange(rows) * (pitch if pitch_y is None else pitch_y))
     pts = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], axis=1)
     if centred:
         pts[:, :2] -= pts[:, :2].mean(axis=0)
@@ -82,7 +83,9 @@ def paper_rig(n_lasers: int = 10) -> Rig:
     return Rig(paper_camera(), mirror, Lasers.create(np.array(pts), np.array(dirs)))
 
 
-def _box_walls(half_width: float, grid_z: float, pitch: float) -> tuple[dict[str, np.ndarray], list[Pose]]:
+def _box_walls(
+    half_width: float, grid_z: float, pitch: float, pitch_y: float
+) -> tuple[dict[str, np.ndarray], list[Pose]]:
     """Four walls at +-half_width (box frame, z up the sensor's axis), a 3x3 grid on each.
 
     Returns the board points and ``T_box_wall`` of each wall.  A wall's board
@@ -100,8 +103,8 @@ def _box_walls(half_width: float, grid_z: float, pitch: float) -> tuple[dict[str
             r[:, 0] *= -1.0
             r[:, 2] *= -1.0
         centre = -half_width * inward + np.array([0.0, 0.0, grid_z])
-        origin = centre - pitch * r[:, 0] - pitch * r[:, 1]
-        boards[f"wall{j}"] = grid_points(3, 3, pitch)
+        origin = centre - pitch * r[:, 0] - pitch_y * r[:, 1]
+        boards[f"wall{j}"] = grid_points(3, 3, pitch, pitch_y=pitch_y)
         poses.append(Pose(jnp.asarray(r), jnp.asarray(origin)))
     return boards, poses
 
@@ -128,8 +131,8 @@ def paper_scene(n_lasers: int = 10, n_views: int = 16, n_chess_views: int = 12) 
         raise ValueError(f"n_views must be at least 1, got {n_views}")
     rig = paper_rig(n_lasers)
     rng = np.random.default_rng(7)  # fixed: the preset's motions
-    half_width, grid_z, pitch = 175.0, -40.0, 30.0
-    boards, T_box_walls = _box_walls(half_width, grid_z, pitch)
+    half_width, grid_z, pitch, pitch_y = 175.0, -40.0, PITCH_X, 30.0
+    boards, T_box_walls = _box_walls(half_width, grid_z, pitch, pitch_y)
     box_poses = []
     for i in range(n_views):
         if i == 0:
@@ -147,7 +150,7 @@ def paper_scene(n_lasers: int = 10, n_views: int = 16, n_chess_views: int = 12) 
     info = {
         "preset": "paper",
         "box_half_width_mm": half_width,
-        "wall_grid": {"cols": 3, "rows": 3, "pitch_mm": pitch, "centre_z_mm": grid_z},
+        "wall_grid": {"cols": 3, "rows": 3, "pitch_x_mm": pitch, "pitch_y_mm": pitch_y, "centre_z_mm": grid_z},
         "chessboard": {"cols": 9, "rows": 6, "square_mm": 25.0},
     }
     return Scene(rig, boards, box_poses, "chess", chess_poses, 90, info)

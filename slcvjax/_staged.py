@@ -1,0 +1,417 @@
+"""The staged calibration (the paper's method), each stage usable alone.
+
+1. :func:`calibrate_intrinsics` -- Zhang's method on the direct chessboard views (OpenCV).
+2. :func:`mirror_from_rim` -- the rim circle (known radius) from its edge pixels: every
+   rim pixel's ray must meet the circle, so the circle's centre C and normal n minimise
+   ``sum (|X_i - C| - r)^2`` with ``X_i`` the ray's point on the plane ``n.(X - C) = 0``.
+   A circle seen in perspective has two such poses (the two-fold ambiguity); both are
+   returned and :func:`staged` keeps the one under which the boards fit best.
+3. :func:`board_poses` -- a generalized (non-central) planar PnP: a DLT on the reflected
+   rays about their mean origin, then Gauss-Newton on the true rays' point-to-ray
+   distances (divided by range, so the error is an angle).
+4. :func:`fit_lasers` -- each spot's reflected ray meets its board's plane at a 3D
+   point; a least-squares 3D line per laser.
+"""
+
+from dataclasses import dataclass, field
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from ._camera import Camera, undistort
+from ._io import Observations
+from ._lasers import Lasers
+from ._mirror import ConeMirror, back_project
+from ._pose import Pose, so3_exp
+from ._problem import Packed, pack
+
+_back_many = jax.jit(jax.vmap(back_project, in_axes=(None, None, 0)))
+
+
+@jax.jit
+def _rays_with_pixel_metric(camera, mirror, uv):
+    """Back-projected rays and, per ray, the 2x3 map from a direction change to pixels."""
+
+    def one(u):
+        ray = back_project(camera, mirror, u)
+        jac = jax.jacfwd(lambda x: back_project(camera, mirror, x).direction)(u)  # (3, 2)
+        return ray, jnp.linalg.pinv(jac)
+
+    return jax.vmap(one)(uv)
+
+
+_undistort_many = jax.jit(jax.vmap(undistort, in_axes=(None, 0)))
+
+
+class CalibrationError(ValueError):
+    """A calibration that cannot be done from these observations (the message says why)."""
+
+
+@dataclass
+class StageReport:
+    """What one stage did: its name, an RMS figure (its own units) and notes."""
+
+    name: str
+    rms: float
+    unit: str
+    notes: list[str] = field(default_factory=list)
+
+
+# ----------------------------------------------------------------------------- 1. intrinsics
+
+
+def calibrate_intrinsics(obs: Observations, flags: int = 0) -> tuple[Camera, dict[int, Pose], StageReport]:
+    """Camera intrinsics and direct-view poses from ``obs.calibration_views`` (OpenCV).
+
+    Views with fewer than 6 corners are skipped (listed in the report).  Returns the
+    camera, the pose ``T_cam_board`` of each used view (keyed by its index) and a report
+    whose ``rms`` is OpenCV's RMS reprojection error in px.
+    """
+    w, h = obs.image_size
+    objp, imgp, used, skipped = [], [], [], []
+    for i, cv in enumerate(obs.calibration_views):
+        if cv.seen.sum() < 6:
+            skipped.append(cv.name)
+            continue
+        objp.append(obs.boards[cv.board][cv.seen].astype(np.float32))
+        imgp.append(cv.pixels[cv.seen].astype(np.float32).reshape(-1, 1, 2))
+        used.append(i)
+    if len(used) < 3:
+        raise CalibrationError(
+            f"calibration_views: {len(used)} usable direct chessboard views (need at least 3 with 6 or more corners)"
+        )
+    rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(objp, imgp, (w, h), None, None, flags=flags)
+    cam = Camera.create(K[0, 0], K[1, 1], K[0, 2], K[1, 2], dist.ravel()[:5], w, h)
+    poses = {i: Pose.from_rvec(r.ravel(), t.ravel()) for i, r, t in zip(used, rvecs, tvecs, strict=True)}
+    notes = [f"{len(used)} views"] + ([f"skipped (under 6 corners): {', '.join(skipped)}"] if skipped else [])
+    return cam, poses, StageReport("intrinsics", float(rms), "px", notes)
+
+
+# ----------------------------------------------------------------------------- 2. mirror from the rim
+
+
+def _rim_residual(y, args):
+    rays, radius, scale = args
+    c, tilt = y[:3], y[3:]
+    n0 = c / jnp.linalg.norm(c)
+    e1 = jnp.cross(n0, jnp.array([0.0, 1.0, 0.0]))
+    e1 = e1 / jnp.linalg.norm(e1)
+    e2 = jnp.cross(n0, e1)
+    n = n0 + tilt[0] * e1 + tilt[1] * e2
+    n = n / jnp.linalg.norm(n)
+    lam = jnp.dot(c, n) / (rays @ n)
+    x = lam[:, None] * rays
+    return (jnp.linalg.norm(x - c, axis=1) - radius) * scale
+
+
+@jax.jit
+def _fit_circle(y0, rays, radius, scale):
+    sol = optx.least_squares(
+        _rim_residual,
+        optx.LevenbergMarquardt(rtol=1e-12, atol=1e-12),
+        y0,
+        args=(rays, radius, scale),
+        max_steps=200,
+        throw=False,
+    )
+    r = _rim_residual(sol.value, (rays, radius, scale))
+    return sol.value, jnp.sqrt(jnp.mean(r**2))
+
+
+def _circle_pose(y):
+    c, tilt = np.asarray(y[:3]), np.asarray(y[3:])
+    n0 = c / np.linalg.norm(c)
+    e1 = np.cross(n0, [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n0, e1)
+    n = n0 + tilt[0] * e1 + tilt[1] * e2
+    return c, n / np.linalg.norm(n)
+
+
+def mirror_from_rim(
+    camera: Camera, rim_pixels: np.ndarray, radius: float, height: float
+) -> tuple[list[ConeMirror], StageReport]:
+    """Candidate mirror poses (one or two) from the rim's edge pixels.
+
+    The circle is fitted from nine starting tilts; distinct solutions whose RMS is
+    within 1.5x of the best are returned, best first.  ``rms`` is in px (first order).
+    """
+    rim = np.asarray(rim_pixels, float).reshape(-1, 2)
+    if len(rim) < 5:
+        raise CalibrationError(f"views[*].rim: {len(rim)} rim pixels in all (need at least 5 to fit the rim circle)")
+    xy, ok = _undistort_many(camera, jnp.asarray(rim))
+    xy = np.asarray(xy)[np.asarray(ok)]
+    rays = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
+    f = float(camera.fx)
+    (cx, cy), (aw, ah), _ = cv2.fitEllipse((xy * f).astype(np.float32))
+    semi = (aw + ah) / 4.0 / f
+    d0 = radius / semi
+    c0 = np.array([cx / f, cy / f, 1.0])
+    c0 = c0 / np.linalg.norm(c0) * d0
+    scale = f / d0
+    sols = []
+    for tx, ty in [(0, 0), (1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1), (1, -1), (-1, 1)]:
+        y0 = jnp.asarray(np.concatenate([c0, np.radians(4.0) * np.array([tx, ty], float)]))
+        y, rms = _fit_circle(y0, jnp.asarray(rays), radius, scale)
+        if np.all(np.isfinite(np.asarray(y))) and np.isfinite(float(rms)):
+            sols.append((float(rms), _circle_pose(y)))
+    if not sols:
+        raise CalibrationError("views[*].rim: the rim circle could not be fitted")
+    sols.sort(key=lambda s: s[0])
+    best = sols[0][0]
+    distinct: list[tuple[float, tuple]] = []
+    for rms, (c, n) in sols:
+        if rms > 1.5 * best + 1e-9:
+            continue
+        if all(np.degrees(np.arccos(np.clip(abs(n @ n2), -1, 1))) > 0.05 for _, (_, n2) in distinct):
+            distinct.append((rms, (c, n)))
+    mirrors = []
+    for _, (c, n) in distinct[:2]:
+        if n @ c < 0:  # the axis points away from the camera, towards the rim
+            n = -n
+        mirrors.append(ConeMirror.create(c - height * n, n, radius, height))
+    note = f"{len(rim)} rim pixels, {len(mirrors)} candidate pose(s)"
+    return mirrors, StageReport("mirror", best, "px", [note])
+
+
+# ----------------------------------------------------------------------------- 3. board poses
+
+
+def _dlt_planar(xb, d, m, mask):
+    """Batched planar DLT about the rays' mean origin: (P, M, .) arrays -> R (P,3,3), t (P,3)."""
+    w = mask[..., None]
+    c = np.sum(m * w, axis=1) / np.maximum(np.sum(w, axis=1), 1)
+    z = np.zeros(d.shape[:2])
+    hx = np.stack(
+        [
+            np.stack([z, -d[..., 2], d[..., 1]], -1),
+            np.stack([d[..., 2], z, -d[..., 0]], -1),
+            np.stack([-d[..., 1], d[..., 0], z], -1),
+        ],
+        axis=-2,
+    )  # (P, M, 3, 3)
+    a = np.concatenate([xb[..., 0, None, None] * hx, xb[..., 1, None, None] * hx, hx], axis=-1)  # (P,M,3,9)
+    a = (a * mask[..., None, None]).reshape(a.shape[0], -1, 9)
+    h = np.linalg.svd(a)[2][:, -1]
+    r1, r2, tp = h[:, :3], h[:, 3:6], h[:, 6:9]
+    s = 2.0 / (np.linalg.norm(r1, axis=1) + np.linalg.norm(r2, axis=1))
+    r1, r2, tp = r1 * s[:, None], r2 * s[:, None], tp * s[:, None]
+    front = np.einsum("pmi,pmi->pm", xb[..., :1] * r1[:, None] + xb[..., 1:2] * r2[:, None] + tp[:, None], d)
+    sign = np.where(np.sum(front * mask, axis=1) < 0, -1.0, 1.0)[:, None]
+    r1, r2, tp = r1 * sign, r2 * sign, tp * sign
+    u, _, vt = np.linalg.svd(np.stack([r1, r2, np.cross(r1, r2)], axis=2))
+    det = np.linalg.det(u @ vt)
+    R = u @ (np.eye(3)[None] * np.stack([np.ones_like(det), np.ones_like(det), det], 1)[:, None, :]) @ vt
+    return R, tp + c
+
+
+def _flipped(R: np.ndarray, t: np.ndarray, xb: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The mirror-image pose of each planar board: normal reflected about the line of sight to its centre."""
+    w = mask[..., None]
+    xbar = np.sum(xb * w, axis=1) / np.maximum(np.sum(w, axis=1), 1)
+    centre = np.einsum("pij,pj->pi", R, xbar) + t
+    v = centre / np.linalg.norm(centre, axis=1, keepdims=True)
+    n = R[:, :, 2]
+    n2 = 2 * np.sum(n * v, axis=1, keepdims=True) * v - n
+    axis = np.cross(n, n2)
+    s = np.linalg.norm(axis, axis=1, keepdims=True)
+    ang = np.arctan2(s[:, 0], np.sum(n * n2, axis=1))
+    axis = np.where(s > 1e-12, axis / np.maximum(s, 1e-300), 0.0)
+    Q = np.stack([np.asarray(so3_exp(jnp.asarray(a * th))) for a, th in zip(axis, ang, strict=True)])
+    R2 = Q @ R
+    return R2, centre - np.einsum("pij,pj->pi", R2, xbar)
+
+
+def _pose_resid(R, t, xb, m, proj):
+    v = xb @ R.T + t - m
+    # range along the ray: proj rows are orthogonal to the ray, so use |v| as the range
+    rng = jnp.maximum(jnp.linalg.norm(v, axis=-1), 1e-6)
+    return jnp.einsum("nij,nj->ni", proj, v) / rng[:, None]
+
+
+@jax.jit
+def _refine_poses(R, t, xb, m, d, metric, mask):
+    """Batched Levenberg-Marquardt (20 steps) of planar poses on pixel-weighted ray distances."""
+
+    def one(R, t, xb, m, d, metric, mask):
+        proj = metric @ (jnp.eye(3)[None] - d[:, :, None] * d[:, None, :]) * mask[:, None, None]
+
+        def res(delta, R, t):
+            return _pose_resid(so3_exp(delta[:3]) @ R, t + delta[3:], xb, m, proj).ravel()
+
+        def body(_, s):
+            R, t, lam, cost = s
+            r = res(jnp.zeros(6), R, t)
+            jac = jax.jacfwd(res)(jnp.zeros(6), R, t)
+            h = jac.T @ jac
+            step = jnp.linalg.solve(h + lam * jnp.diag(jnp.diag(h) + 1e-12), -jac.T @ r)
+            R2, t2 = so3_exp(step[:3]) @ R, t + step[3:]
+            c2 = jnp.sum(res(jnp.zeros(6), R2, t2) ** 2)
+            ok = c2 < cost
+            return (
+                jnp.where(ok, R2, R),
+                jnp.where(ok, t2, t),
+                jnp.where(ok, lam / 3, lam * 4),
+                jnp.where(ok, c2, cost),
+            )
+
+        c0 = jnp.sum(res(jnp.zeros(6), R, t) ** 2)
+        R, t, _, cost = jax.lax.fori_loop(0, 20, body, (R, t, jnp.asarray(1e-3), c0))
+        return R, t, jnp.sqrt(cost / jnp.maximum(jnp.sum(mask), 1))
+
+    return jax.vmap(one)(R, t, xb, m, d, metric, mask)
+
+
+def board_poses(
+    camera: Camera, mirror: ConeMirror, pk: Packed, start: Pose | None = None
+) -> tuple[list[Pose], StageReport]:
+    """The pose of every (view, board) of ``pk`` from its dots, by generalized planar PnP.
+
+    ``start`` (stacked poses): refine from these instead of the DLT (both the start and
+    its flipped twin are tried).
+    """
+    rays, metric = _rays_with_pixel_metric(camera, mirror, pk.dot_pixels)
+    org, dirs, ok = np.asarray(rays.point), np.asarray(rays.direction), np.asarray(rays.valid)
+    metric = np.asarray(metric)
+    idx = np.asarray(pk.dot_pose)
+    pts = np.asarray(pk.dot_points)
+    n_p = pk.n_poses
+    counts = np.bincount(idx[ok], minlength=n_p)
+    for k in np.flatnonzero(counts < 4):
+        vi, b = pk.pose_keys[k]
+        raise CalibrationError(
+            f"views[{vi}].boards.{b}: {int(counts[k])} dots back-project onto the mirror (need at least 4 for its pose)"
+        )
+    mx = int(np.bincount(idx, minlength=n_p).max())
+    shape = (n_p, mx)
+    xb, m, d = np.zeros(shape + (3,)), np.zeros(shape + (3,)), np.tile([0.0, 0.0, 1.0], shape + (1,))
+    met, mask = np.zeros(shape + (2, 3)), np.zeros(shape)
+    slot = np.zeros(n_p, dtype=int)
+    for i in np.flatnonzero(ok):
+        k = idx[i]
+        j = slot[k]
+        slot[k] += 1
+        xb[k, j], m[k, j], d[k, j], met[k, j], mask[k, j] = pts[i], org[i], dirs[i], metric[i], 1.0
+    data = tuple(jnp.asarray(a) for a in (xb, m, d, met, mask))
+    starts = [_dlt_planar(xb, d, m, mask)]
+    if start is not None:
+        starts.append((np.asarray(start.R), np.asarray(start.t)))
+    R = t = errs = None
+    for R0, t0 in starts:
+        R1, t1, e1 = _refine_poses(jnp.asarray(R0), jnp.asarray(t0), *data)
+        # a small planar target has a second, flipped pose (its normal mirrored about the
+        # line of sight); refine that one too and keep the best fit of all candidates
+        R2, t2 = _flipped(np.asarray(R1), np.asarray(t1), xb, mask)
+        R2, t2, e2 = _refine_poses(jnp.asarray(R2), jnp.asarray(t2), *data)
+        for Rc, tc, ec in ((R1, t1, e1), (R2, t2, e2)):
+            ec = jnp.where(jnp.isfinite(ec), ec, jnp.inf)
+            if R is None:
+                R, t, errs = Rc, tc, ec
+                continue
+            better = ec < errs
+            R = jnp.where(better[:, None, None], Rc, R)
+            t = jnp.where(better[:, None], tc, t)
+            errs = jnp.where(better, ec, errs)
+    poses = [Pose(R[k], t[k]) for k in range(n_p)]
+    errs = np.asarray(errs)
+    rms = float(np.sqrt(np.mean(np.square(errs)))) if errs.size else 0.0
+    return poses, StageReport("board_poses", rms, "px (first order)", [f"{len(poses)} board poses"])
+
+
+# ----------------------------------------------------------------------------- 4. lasers
+
+
+def fit_lasers(camera: Camera, mirror: ConeMirror, pk: Packed, poses: list[Pose], n_lasers: int):
+    """One 3D line per laser through its spots' points on their boards' planes.
+
+    Raises :class:`CalibrationError` naming a laser whose points cannot fix a line
+    (fewer than 2 points, or all within 1 mm of each other).
+    """
+    rays = _back_many(camera, mirror, pk.spot_pixels)
+    org, dirs, ok = np.asarray(rays.point), np.asarray(rays.direction), np.asarray(rays.valid)
+    laser_of = np.asarray(pk.spot_laser)
+    pose_of = np.asarray(pk.spot_pose)
+    pts: list[list[np.ndarray]] = [[] for _ in range(n_lasers)]
+    for i in range(len(laser_of)):
+        if not ok[i]:
+            continue
+        pose = poses[pose_of[i]]
+        n, t = np.asarray(pose.R[:, 2]), np.asarray(pose.t)
+        denom = n @ dirs[i]
+        if abs(denom) < 1e-9:
+            continue
+        lam = n @ (t - org[i]) / denom
+        if lam > 0:  # the board must lie ahead of the mirror along the reflected ray
+            pts[laser_of[i]].append(org[i] + lam * dirs[i])
+    points, directions, spreads = [], [], []
+    for laser, p in enumerate(pts):
+        p = np.array(p).reshape(-1, 3)
+        spread = np.linalg.svd(p - p.mean(axis=0), compute_uv=False)[0] / np.sqrt(len(p)) if len(p) >= 2 else 0.0
+        if len(p) < 2 or spread < 0.5:
+            raise CalibrationError(
+                f"laser {laser}: {len(p)} spot point(s) spread over {2 * spread:.2g} mm cannot fix a line "
+                "(need spots on at least 2 planes at different distances)"
+            )
+        centre = p.mean(axis=0)
+        d = np.linalg.svd(p - centre)[2][0]
+        if d @ centre < 0:
+            d = -d
+        points.append(centre)
+        directions.append(d)
+        spreads.append(spread)
+    lasers = Lasers.create(np.array(points), np.array(directions)).canonical()
+    resid = []
+    for laser, p in enumerate(pts):
+        p = np.array(p)
+        v = p - points[laser]
+        resid.extend(np.linalg.norm(v - np.outer(v @ directions[laser], directions[laser]), axis=1))
+    return lasers, StageReport(
+        "lasers",
+        float(np.sqrt(np.mean(np.square(resid)))),
+        "mm (point-to-line)",
+        [f"{n_lasers} lasers from {sum(len(p) for p in pts)} spots"],
+    )
+
+
+# ----------------------------------------------------------------------------- the whole staged pipeline
+
+
+@dataclass
+class Staged:
+    """The staged result: camera, mirror, lasers, board poses, direct-view poses, reports."""
+
+    camera: Camera
+    mirror: ConeMirror
+    lasers: Lasers
+    poses: list[Pose]
+    chess_poses: dict[int, Pose]
+    reports: list[StageReport]
+
+
+def staged(obs: Observations, camera: Camera | None = None, pk: Packed | None = None) -> Staged:
+    """Run the four stages.  ``camera``: a known camera (skips the intrinsics stage)."""
+    pk = pack(obs) if pk is None else pk
+    if not obs.views:
+        raise CalibrationError("views: no catadioptric views")
+    if pk.n_poses == 0:
+        raise CalibrationError("views[*].boards: no board dots seen in any view")
+    reports = []
+    chess: dict[int, Pose] = {}
+    if camera is None:
+        camera, chess, rep = calibrate_intrinsics(obs)
+        reports.append(rep)
+    rim = np.concatenate([v.rim for v in obs.views]) if obs.views else np.zeros((0, 2))
+    mirrors, rep_m = mirror_from_rim(camera, rim, obs.mirror_radius, obs.mirror_height)
+    best = None
+    for i, m in enumerate(mirrors):
+        poses, rep_p = board_poses(camera, m, pk)
+        if best is None or rep_p.rms < best[2].rms:
+            best = (m, poses, rep_p, i)
+    mirror, poses, rep_p, chosen = best
+    if len(mirrors) > 1:
+        rep_m.notes.append(f"two-fold ambiguity resolved by the boards' fit: candidate {chosen + 1} kept")
+    lasers, rep_l = fit_lasers(camera, mirror, pk, poses, obs.n_lasers)
+    return Staged(camera, mirror, lasers, poses, chess, reports + [rep_m, rep_p, rep_l])
