@@ -48,6 +48,7 @@ from ._safe import safe_div, safe_norm
 N_CAM, N_MIR, N_LAS = 9, 5, 4
 N_CM = N_CAM + N_MIR
 LOSSES = ("huber", "cauchy", "linear")
+RIM_MARGIN = 0.05  # the cone extended 5 % past its rim for residuals (see solve_mirror_point)
 INVALID_PENALTY = 0.5 * 30.0**2  # the cost of a 30 px residual, per invalid observation
 
 # result codes
@@ -89,7 +90,7 @@ def _cm(cam: Camera, mir: ConeMirror, d):
 
 def _dot(d, cam, mir, R, t, xb, px):
     c, m = _cm(cam, mir, d)
-    res = project_through_mirror(c, m, Pose(R, t).retract(d[N_CM:]).apply(xb))
+    res = project_through_mirror(c, m, Pose(R, t).retract(d[N_CM:]).apply(xb), rim_margin=RIM_MARGIN)
     return res.uv - px, res.valid
 
 
@@ -99,7 +100,7 @@ def _spot(d, cam, mir, lp, ld, R, t, px):
     x, ok = line_plane_intersection(
         las.points[0], las.directions[0], Pose(R, t).retract(d[N_CM + N_LAS :]), forward_only=False
     )
-    res = project_through_mirror(c, m, x)
+    res = project_through_mirror(c, m, x, rim_margin=RIM_MARGIN)
     return res.uv - px, ok & res.valid
 
 
@@ -474,15 +475,20 @@ def covariance(params: Params, pk: Packed, masks: Masks, loss: str, scale, sigma
     ne = normal_equations(rows, w, g, nb, masks.glob, masks.blocks)
     seen_blocks = (
         jax.ops.segment_sum(
-            rows.valid.astype(float) * (jnp.sum(jnp.abs(rows.jp), axis=1) > 0), rows.pidx, num_segments=nb + 1
+            (rows.valid & (jnp.sum(jnp.abs(rows.jp), axis=1) > 0)).astype(float), rows.pidx, num_segments=nb + 1
         )[:nb]
         > 0
     )
-    seen_glob = jnp.zeros(g + 1).at[rows.gidx].add(jnp.abs(rows.jg))[:g] > 0
+    seen_glob = (jnp.zeros(g + 1).at[rows.gidx].add(jnp.abs(rows.jg))[:g] > 0).astype(float)
+    seen_blocks = seen_blocks.astype(float)
     k = jnp.sum(masks.glob * seen_glob) + 6 * jnp.sum(masks.blocks * seen_blocks)
-    n = jnp.sum(rows.valid)
-    dof = (n - k).astype(int)
-    s2 = jnp.sum(w * rows.r**2) / jnp.maximum(dof, 1) if sigma is None else jnp.asarray(sigma, dtype=float) ** 2
+    n = jnp.sum(rows.valid.astype(float))
+    dof = (n - k).astype(jnp.int64)
+    s2 = (
+        jnp.sum(w * rows.r**2) / jnp.maximum(dof, 1).astype(float)
+        if sigma is None
+        else jnp.asarray(sigma, dtype=float) ** 2
+    )
     Dinv = jnp.linalg.inv(ne.D)
     Dinv_Bt = jnp.einsum("kij,kgj->kig", Dinv, ne.B)
     S = ne.A - jnp.einsum("kgi,kih->gh", ne.B, Dinv_Bt)

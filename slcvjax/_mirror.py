@@ -209,13 +209,16 @@ class MirrorProjection(NamedTuple):
 
 
 def solve_mirror_point(
-    mirror: ConeMirror, p_cam: Float[Array, "3"], iters: int = 10, implicit: bool = True
+    mirror: ConeMirror, p_cam: Float[Array, "3"], iters: int = 10, implicit: bool = True, rim_margin: float = 0.0
 ) -> tuple[Float[Array, "3"], Bool[Array, ""]]:
     """The mirror point whose reflection sends the camera's ray through ``p_cam``.
 
     Returns ``(M, valid)`` where ``valid`` says Newton converged to a point of
-    the finite cone (``0 < s <= h``) that faces both the camera and the target.
-    Implicit derivative (``implicit=True``) or unrolled (baseline).
+    the finite cone (``0 < s <= h (1 + rim_margin)``) that faces both the camera
+    and the target.  ``rim_margin > 0`` extends the surface past the rim, which a
+    calibration uses so that a point observed at the rim's edge keeps a residual
+    while the estimate is still off.  Implicit derivative (``implicit=True``) or
+    unrolled (baseline).
     """
     params = (mirror.apex, mirror.axis, mirror.k, p_cam)
     x0 = _initial_guess(mirror, p_cam)
@@ -226,7 +229,7 @@ def solve_mirror_point(
     valid = (
         (newton_residual_norm(_reflection_residual, x, params) < 1e-9)
         & (s > 1e-9)
-        & (s <= mirror.height * (1.0 + 1e-12))
+        & (s <= mirror.height * (1.0 + 1e-12 + rim_margin))
         & (jnp.dot(n, -m) > 0.0)
         & (jnp.dot(n, p_cam - m) > 0.0)
     )
@@ -239,14 +242,16 @@ def project_through_mirror(
     p_cam: Float[Array, "3"],
     iters: int = 10,
     implicit: bool = True,
+    rim_margin: float = 0.0,
 ) -> MirrorProjection:
     """Pixel at which a 3D point (camera frame, mm) is seen through the mirror.
 
-    ``valid`` is False where no reflection path exists on the finite cone, the
-    point is behind the mirror's tangent plane, or the pixel is off the sensor;
+    ``valid`` is False where no reflection path exists on the finite cone (see
+    :func:`solve_mirror_point` for ``rim_margin``), the point is behind the
+    mirror's tangent plane, or the pixel is off the sensor;
     ``uv`` is then finite but meaningless, and gradients stay finite.
     """
-    m, ok = solve_mirror_point(mirror, p_cam, iters=iters, implicit=implicit)
+    m, ok = solve_mirror_point(mirror, p_cam, iters=iters, implicit=implicit, rim_margin=rim_margin)
     uv, ok_cam = project(cam, m)
     valid = ok & ok_cam & in_image(cam, jax.lax.stop_gradient(uv))
     return MirrorProjection(jnp.where(valid, uv, 0.0), m, valid)

@@ -98,14 +98,14 @@ def pack(obs: Observations, use_views: bool = True, use_direct: bool = True) -> 
         return jnp.asarray(np.concatenate(parts) if parts else np.zeros((0, width)))
 
     return Packed(
-        jnp.asarray(np.array(dp, dtype=np.int32)),
+        jnp.asarray(np.array(dp, dtype=np.int64)),
         cat(dpts, 3),
         cat(dpx, 2),
-        jnp.asarray(np.array(sp, dtype=np.int32)),
-        jnp.asarray(np.array(sl, dtype=np.int32)),
+        jnp.asarray(np.array(sp, dtype=np.int64)),
+        jnp.asarray(np.array(sl, dtype=np.int64)),
         jnp.asarray(np.array(spx, dtype=float).reshape(-1, 2)),
         cat(rim, 2),
-        jnp.asarray(np.array(cp, dtype=np.int32)),
+        jnp.asarray(np.array(cp, dtype=np.int64)),
         cat(cpts, 3),
         cat(cpx, 2),
         tuple(keys),

@@ -47,18 +47,203 @@ def _cmd_simulate(args) -> int:
 
 
 def _cmd_demo(args) -> int:
+    from ._calibrate import calibrate, cramer_rao, laser_errors, to_calibration
     from ._simulate import make_scene, simulate
 
     t0 = time.perf_counter()
-    print("slcvjax demo: the simulated reference rig (paper preset)", flush=True)
-    scene = make_scene("paper")
-    obs, truth = simulate(scene, noise=args.noise, seed=args.seed)
     out = Path(args.out)
+    print("slcvjax demo: the simulated reference rig (paper preset)", flush=True)
+    print("[1/3] simulate", flush=True)
+    scene = make_scene("paper", n_views=args.views)
+    obs, truth = simulate(scene, noise=args.noise, seed=args.seed)
     write_observations(out / "observations.json", obs)
     write_calibration(out / "truth.json", truth)
     print(_summary(obs, truth))
-    print(f"wrote {out}/ ({time.perf_counter() - t0:.1f} s)")
+    print("[2/3] calibrate: staged, then joint (the first run compiles, about a minute)", flush=True)
+    t1 = time.perf_counter()
+    res = calibrate(obs)
+    t_cal = time.perf_counter() - t1
+    cal = to_calibration(res, obs)
+    write_calibration(out / "calibration.json", cal)
+    print_report(cal, "calibration")
+    print("[3/3] compare with the truth and the Cramer-Rao bound", flush=True)
+    bound = cramer_rao(truth, obs, max(args.noise, 1e-3))
+    pos, ang = laser_errors(res.rig, truth.rig, bound["x_ref"])
+    st = res.staged
+    from ._rig import Rig
+
+    pos_s, ang_s = laser_errors(Rig(st.camera, st.mirror, st.lasers), truth.rig, bound["x_ref"])
+    unc = cal.extra["uncertainty"]["lasers"]
+    print("laser  error (mm, deg)    reported std (mm, deg)   bound std (mm, deg)   staged error (mm, deg)")
+    for i in range(len(pos)):
+        print(
+            f"{i:5d}  {pos[i]:6.3f} {np.degrees(ang[i]):6.3f}     {unc[i]['position_std_mm']:6.3f} "
+            f"{unc[i]['direction_std_deg']:6.3f}          {bound['position_std_mm'][i]:6.3f} "
+            f"{np.degrees(bound['direction_std_rad'][i]):6.3f}       {pos_s[i]:7.3f} {np.degrees(ang_s[i]):6.3f}"
+        )
+    rms = lambda x: float(np.sqrt(np.mean(np.square(x))))  # noqa: E731
+    print(
+        f"RMS    {rms(pos):6.3f} {np.degrees(rms(ang)):6.3f}     bound {bound['position_rms_mm']:.3f} "
+        f"{np.degrees(bound['direction_rms_rad']):.3f}     staged {rms(pos_s):.3f} {np.degrees(rms(ang_s)):.3f}"
+    )
+    print(f"timings: calibration {t_cal:.1f} s (compilation included), total {time.perf_counter() - t0:.1f} s")
+    print(f"wrote {out}/ (observations.json, truth.json, calibration.json)")
     return 0
+
+
+def _fmt(x, nd=3):
+    return "-" if x is None else f"{x:.{nd}f}"
+
+
+def print_report(cal, name: str = "") -> None:
+    """A short human-readable report of a calibration document's residuals and uncertainty."""
+    res, unc = cal.extra["residuals"], cal.extra["uncertainty"]
+    passes = cal.extra["stages"]["joint"]["passes"]
+    print(f"== {name}" if name else "==")
+    print(
+        f"rms {res['rms_px']:.3f} px   sigma {res['sigma_px']:.3f} px   dof {res['dof']}   "
+        f"joint: " + ", ".join(f"{p['name'].split(':')[0]} {p['steps']} steps {p['result']}" for p in passes)
+    )
+    print("per kind   " + "  ".join(f"{k} {_fmt(v)}" for k, v in res["by_kind_rms_px"].items()))
+    print("per view   " + "  ".join(f"{k} {_fmt(v)}" for k, v in res["per_view_rms_px"].items()))
+    print("per board  " + "  ".join(f"{k} {_fmt(v)}" for k, v in res["per_board_rms_px"].items()))
+    print("per laser  " + "  ".join(f"{k}: {_fmt(v)}" for k, v in res["per_laser_rms_px"].items()))
+    out = res["outliers"]
+
+    def _outlier(o):
+        laser = f" laser {o['laser']}" if "laser" in o else ""
+        return f"{o['kind']} {o['view']} {o['board']}{laser} {o['residual_px']:.1f} px"
+
+    listed = "; ".join(_outlier(o) for o in out[:10]) + (" ..." if len(out) > 10 else "")
+    print(f"outliers   {len(out)}" + (f": {listed}" if out else ""))
+    if res["invalid"]:
+        print(f"invalid    {res['invalid']} observation(s) fall outside the model (off the mirror or the sensor)")
+    cs = unc["camera_std"]
+    print(f"camera std fx {cs['fx']:.3f} fy {cs['fy']:.3f} cx {cs['cx']:.3f} cy {cs['cy']:.3f} px")
+    ms = unc["mirror_std"]
+    apex, tilt = np.round(ms["apex_mm"], 4).tolist(), np.round(ms["axis_tilt_deg"], 4).tolist()
+    print(f"mirror std apex {apex} mm  axis {tilt} deg")
+    for i, las in enumerate(unc["lasers"]):
+        print(
+            f"laser {i:2d}   std {las['position_std_mm']:.3f} mm at {las['working_range_mm']:.0f} mm, "
+            f"direction {las['direction_std_deg']:.3f} deg"
+        )
+
+
+def _cmd_calibrate(args) -> int:
+    from ._calibrate import calibrate, to_calibration
+    from ._io import read_calibration, read_observations
+    from ._staged import CalibrationError
+
+    inputs = [Path(p) for p in args.inputs]
+    observations = [read_observations(p) for p in inputs]  # all validated before any work
+    camera = read_calibration(args.camera).rig.camera if args.camera else None
+    freeze = tuple(f for f in (args.freeze or "").split(",") if f)
+    results = []
+    for path, obs in zip(inputs, observations, strict=True):
+        t0 = time.perf_counter()
+        try:
+            res = calibrate(obs, camera=camera, freeze=freeze, loss=args.loss, loss_scale=args.loss_scale)
+        except CalibrationError as e:
+            raise FormatError(f"{path}: {e}") from None
+        cal = to_calibration(res, obs)
+        results.append((path, cal))
+        print_report(cal, f"{path} ({time.perf_counter() - t0:.1f} s)")
+    out = Path(args.out)
+    if len(inputs) == 1 and out.suffix == ".json":
+        targets = [out]
+    else:
+        if out.suffix == ".json":
+            raise FormatError(f"{out}: several inputs need an output directory, not a .json file")
+        targets = [out / f"{p.stem}.json" for p in inputs]
+        if len({t.name for t in targets}) < len(targets):
+            raise FormatError("inputs: two inputs share a file name; their outputs would collide")
+    for (_, cal), target in zip(results, targets, strict=True):
+        write_calibration(target, cal)
+        print(f"wrote {target}")
+    if args.export_opencv:
+        export_opencv(args.export_opencv, results[0][1].rig.camera)
+        print(f"wrote {args.export_opencv}")
+    return 0
+
+
+def export_opencv(path, camera) -> None:
+    """Write a camera as OpenCV FileStorage YAML (camera_matrix, distortion_coefficients)."""
+    import cv2
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp{path.suffix}")
+    fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
+    fs.write("image_width", int(camera.width))
+    fs.write("image_height", int(camera.height))
+    fs.write("camera_matrix", np.asarray(camera.K, float))
+    fs.write("distortion_coefficients", np.asarray(camera.dist, float).reshape(1, 5))
+    fs.release()
+    tmp.replace(path)
+
+
+def _cmd_camera(args) -> int:
+    from ._chessboard import calibrate_camera_images
+    from ._io import Calibration
+    from ._lasers import Lasers
+    from ._rig import Rig
+    from ._staged import CalibrationError
+
+    try:
+        cols, rows = (int(x) for x in args.board.lower().split("x"))
+    except ValueError:
+        raise FormatError(f"--board: expected COLSxROWS inner corners such as 9x6, got {args.board!r}") from None
+    if args.square <= 0:
+        raise FormatError(f"--square: must be positive, got {args.square}")
+    try:
+        res = calibrate_camera_images(args.images, (cols, rows), args.square)
+    except CalibrationError as e:
+        raise FormatError(str(e)) from None
+    for name, r in res.per_view_rms_px.items():
+        print(f"{name}: rms {r:.4f} px")
+    if res.missing:
+        print(f"no {cols}x{rows} board found in: {', '.join(res.missing)}")
+    c = res.camera
+    print(
+        f"fx {float(c.fx):.4f}  fy {float(c.fy):.4f}  cx {float(c.cx):.4f}  cy {float(c.cy):.4f}  "
+        f"dist {np.round(np.asarray(c.dist), 6).tolist()}"
+    )
+    print(f"rms {res.rms_px:.5f} px (OpenCV's calibrateCamera on the same corners: {res.opencv_rms_px:.5f} px)")
+    doc = Calibration(
+        Rig(c, None, Lasers(np.zeros((0, 3)), np.zeros((0, 3)))),  # type: ignore[arg-type]
+        extra={
+            "residuals": {
+                "rms_px": res.rms_px,
+                "per_view_rms_px": res.per_view_rms_px,
+                "opencv_rms_px": res.opencv_rms_px,
+                "images_without_board": res.missing,
+            }
+        },
+    )
+    _write_camera_only(args.out, doc)
+    print(f"wrote {args.out}")
+    if args.export_opencv:
+        export_opencv(args.export_opencv, c)
+        print(f"wrote {args.export_opencv}")
+    return 0
+
+
+def _write_camera_only(path, cal) -> None:
+    from ._io import CALIBRATION_FORMAT, write_json_atomic
+
+    cam = cal.rig.camera
+    doc = {
+        "format": CALIBRATION_FORMAT,
+        "camera": {
+            "width": cam.width,
+            "height": cam.height,
+            "K": np.asarray(cam.K, float).tolist(),
+            "dist": np.asarray(cam.dist, float).tolist(),
+        },
+    }
+    doc.update(cal.extra)
+    write_json_atomic(path, doc)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -74,9 +259,28 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True, help="output directory")
     s.set_defaults(func=_cmd_simulate)
 
+    c = sub.add_parser("calibrate", help="calibrate the rig from slcv-observations/1 files")
+    c.add_argument("inputs", nargs="+", help="observation file(s)")
+    c.add_argument("--out", required=True, help="output file (one input) or directory (several)")
+    c.add_argument("--camera", help="a slcv-calibration/1 file whose camera starts the calibration")
+    c.add_argument("--freeze", help="comma-separated blocks to hold fixed: camera, mirror, lasers, poses, chess_poses")
+    c.add_argument("--loss", default="huber", choices=["huber", "cauchy", "linear"], help="robust loss (default huber)")
+    c.add_argument("--loss-scale", type=float, default=None, help="robust loss scale in px (default 3 sigma)")
+    c.add_argument("--export-opencv", help="also write the camera as OpenCV FileStorage YAML")
+    c.set_defaults(func=_cmd_calibrate)
+
+    k = sub.add_parser("camera", help="calibrate a plain camera from chessboard images")
+    k.add_argument("images", nargs="+")
+    k.add_argument("--board", default="9x6", help="inner corners COLSxROWS (default 9x6)")
+    k.add_argument("--square", type=float, default=25.0, help="square size in mm (default 25)")
+    k.add_argument("--out", required=True, help="output slcv-calibration/1 file (camera only)")
+    k.add_argument("--export-opencv", help="also write OpenCV FileStorage YAML")
+    k.set_defaults(func=_cmd_camera)
+
     d = sub.add_parser("demo", help="the main job on the simulated reference rig")
     d.add_argument("--noise", type=float, default=0.5, help="pixel noise sigma in px (default 0.5)")
     d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--views", type=int, default=16, help="catadioptric views (default 16)")
     d.add_argument("--out", default="slcvjax-demo", help="output directory (default ./slcvjax-demo)")
     d.set_defaults(func=_cmd_demo)
     return p

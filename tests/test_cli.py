@@ -5,11 +5,11 @@ from slcvjax import cli
 
 
 def test_demo_runs_and_writes_its_folder(tmp_path, capsys):
-    assert cli.main(["demo", "--out", str(tmp_path / "demo")]) == 0
+    assert cli.main(["demo", "--views", "6", "--out", str(tmp_path / "demo")]) == 0
     out = capsys.readouterr().out
-    assert "camera" in out and "mirror" in out and "lasers" in out
-    assert (tmp_path / "demo" / "observations.json").exists()
-    assert (tmp_path / "demo" / "truth.json").exists()
+    assert "camera" in out and "mirror" in out and "bound" in out
+    for name in ["observations.json", "truth.json", "calibration.json"]:
+        assert (tmp_path / "demo" / name).exists()
 
 
 def test_console_script_reports_usage_errors():

@@ -1,0 +1,264 @@
+import copy
+import glob
+import json
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import slcvjax as sj
+from slcvjax import _lm, cli
+from slcvjax._calibrate import _arrays, _covariance, _solve, calibrate, cramer_rao, laser_errors, to_calibration
+from slcvjax._io import observations_to_json, read_calibration, read_observations, write_observations
+from slcvjax._problem import pack, stack_poses
+from slcvjax._simulate import make_scene, simulate
+from slcvjax._staged import CalibrationError, staged
+
+SCENE = dict(n_lasers=4, n_views=5)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_scene("paper", **SCENE)
+
+
+@pytest.fixture(scope="module")
+def exact(scene):
+    return simulate(scene, noise=0.0, seed=0)
+
+
+def _truth_params(truth, pk):
+    poses = stack_poses([truth.board_poses[v][b] for v, b in pk.pose_keys])
+    chess = stack_poses([truth.calibration_view_poses[c] for c in pk.chess_keys])
+    return _lm.Params(truth.rig, poses, chess)
+
+
+def test_staged_pipeline_recovers_the_truth_from_exact_observations(exact):
+    obs, truth = exact
+    st = staged(obs)
+    np.testing.assert_allclose(
+        np.asarray(st.camera.params()), np.asarray(truth.rig.camera.params()), rtol=1e-5, atol=1e-5
+    )
+    np.testing.assert_allclose(np.asarray(st.mirror.apex), np.asarray(truth.rig.mirror.apex), atol=1e-3)
+    assert float(st.mirror.axis @ truth.rig.mirror.axis) > np.cos(np.radians(1e-3))
+    _, ang = laser_errors(sj.Rig(st.camera, st.mirror, st.lasers), truth.rig, np.asarray(truth.rig.lasers.points))
+    assert np.degrees(ang).max() < 1e-3
+
+
+def test_joint_solution_is_exact_on_exact_observations(exact):
+    obs, truth = exact
+    res = calibrate(obs)
+    np.testing.assert_allclose(
+        np.asarray(res.rig.camera.params()), np.asarray(truth.rig.camera.params()), rtol=1e-8, atol=1e-9
+    )
+    np.testing.assert_allclose(np.asarray(res.rig.mirror.apex), np.asarray(truth.rig.mirror.apex), atol=1e-7)
+    pos, ang = laser_errors(res.rig, truth.rig, np.asarray(truth.rig.lasers.points))
+    assert pos.max() < 1e-6 and ang.max() < 1e-8
+
+
+def test_joint_lowers_the_cost_converges_and_estimates_sigma(scene):
+    obs, truth = simulate(scene, noise=0.5, seed=3)
+    res = calibrate(obs)
+    for p in res.passes:
+        assert p.cost <= p.cost0 + 1e-9
+    assert res.passes[-1].result.startswith("converged")
+    assert float(res.cov.sigma) == pytest.approx(0.5, rel=0.15)
+    # the joint result is better than the staged one at the lasers
+    x_ref = np.asarray(truth.rig.lasers.points)
+    st = res.staged
+    pj, _ = laser_errors(res.rig, truth.rig, x_ref)
+    ps, _ = laser_errors(sj.Rig(st.camera, st.mirror, st.lasers), truth.rig, x_ref)
+    assert np.sqrt(np.mean(pj**2)) < np.sqrt(np.mean(ps**2))
+
+
+def test_schur_step_equals_dense_step(scene):
+    obs, truth = simulate(scene, noise=0.5, seed=1)
+    pk = _arrays(pack(obs))
+    params = _truth_params(truth, pack(obs))
+    masks = _lm.make_masks(params, {"chess_poses"})
+    rows = _lm._rows(params, pk)
+    w, _ = _lm.robust_weights(rows, _lm.n_observations(pk), "huber", jnp.asarray(1.0))
+    ne = _lm.normal_equations(rows, w, params.n_global, params.n_blocks, masks.glob, masks.blocks)
+    for lam in [0.0, 1e-3, 1.0]:
+        gs, ps = _lm.schur_step(ne, lam)
+        gd, pd = _lm.dense_step(ne, lam)
+        scale = float(jnp.abs(gd).max())
+        np.testing.assert_allclose(np.asarray(gs), np.asarray(gd), atol=1e-8 * scale, rtol=1e-7)
+        np.testing.assert_allclose(np.asarray(ps), np.asarray(pd), atol=1e-8 * scale, rtol=1e-7)
+    # frozen blocks do not move
+    assert float(jnp.abs(ps[params.poses.t.shape[0] :]).max()) == 0.0
+
+
+def test_covariance_matches_a_small_monte_carlo(scene):
+    sigma = 0.5
+    obs, truth = simulate(scene, noise=sigma, seed=0)
+    pk = pack(obs)
+    p_true = _truth_params(truth, pk)
+    masks = _lm.make_masks(p_true)
+    cov = np.asarray(_covariance(p_true, _arrays(pk), masks, "linear", 1.0, sigma=sigma).glob)
+    errs = []
+    for seed in range(1, 41):
+        o, _ = simulate(scene, noise=sigma, seed=seed)
+        res = _solve(p_true, _arrays(pack(o)), masks, loss="linear", scale=1.0, max_steps=50)
+        est = res.params.rig
+        e = np.concatenate(
+            [
+                np.asarray(est.camera.params() - truth.rig.camera.params()),
+                np.asarray(est.mirror.apex - truth.rig.mirror.apex),
+            ]
+        )
+        errs.append(e)
+    errs = np.array(errs)
+    sd_mc = errs.std(axis=0)
+    sd_pred = np.sqrt(np.diag(cov)[:12])
+    ratio = sd_mc / sd_pred
+    # 40 samples: the sample std is within about +-35 % of the truth at 3 sigma
+    assert np.all((ratio > 0.6) & (ratio < 1.45)), ratio
+
+
+def test_bound_shrinks_with_noise(exact, scene):
+    obs, truth = exact
+    b1 = cramer_rao(truth, obs, 0.5)
+    b2 = cramer_rao(truth, obs, 1.0)
+    assert b2["position_rms_mm"] == pytest.approx(2 * b1["position_rms_mm"], rel=1e-9)
+    assert np.all(b1["position_std_mm"] > 0) and np.all(np.isfinite(b1["direction_std_rad"]))
+
+
+def test_known_camera_can_be_frozen(scene):
+    obs, truth = simulate(scene, noise=0.3, seed=5)
+    res = calibrate(obs, camera=truth.rig.camera, freeze={"camera"})
+    np.testing.assert_array_equal(np.asarray(res.rig.camera.params()), np.asarray(truth.rig.camera.params()))
+    assert np.all(np.asarray(res.cov.glob)[:9, :9] == 0.0)
+
+
+def test_outliers_are_flagged_and_do_not_spoil_the_fit(scene):
+    # a dot has 8 redundant neighbours on its board (a spot in this 5-view scene has too little
+    # redundancy to be told from its laser's line)
+    obs, truth = simulate(scene, noise=0.3, seed=6)
+    x_ref = cramer_rao(truth, obs, 0.3)["x_ref"]
+    clean = calibrate(obs)
+    px, seen = obs.views[2].boards["wall3"]
+    j = int(np.flatnonzero(seen)[4])
+    px[j] += np.array([25.0, -20.0])
+    res = calibrate(obs)
+    cal = to_calibration(res, obs)
+    outl = cal.extra["residuals"]["outliers"]
+    assert any(o["kind"] == "dot" and o["view"] == obs.views[2].name and o["board"] == "wall3" for o in outl)
+    assert len(outl) <= 3
+    # the robust fit lands where the clean data's fit does (within a fraction of the clean error)
+    pos, ang = laser_errors(res.rig, truth.rig, x_ref)
+    pos0, ang0 = laser_errors(clean.rig, truth.rig, x_ref)
+    assert np.sqrt(np.mean(pos**2)) < 1.3 * np.sqrt(np.mean(pos0**2))
+    assert np.sqrt(np.mean(ang**2)) < 1.3 * np.sqrt(np.mean(ang0**2))
+
+
+def test_a_laser_without_enough_spots_is_named(scene):
+    obs, _ = simulate(scene, noise=0.3, seed=0)
+    for v in obs.views[1:]:
+        v.spots = [s for s in v.spots if s.laser != 2]
+    with pytest.raises(CalibrationError, match="laser 2"):
+        calibrate(obs)
+
+
+def test_cli_calibrate_writes_a_calibration(tmp_path, scene, capsys):
+    obs, truth = simulate(scene, noise=0.4, seed=2)
+    write_observations(tmp_path / "a.json", obs)
+    rc = cli.main(
+        [
+            "calibrate",
+            str(tmp_path / "a.json"),
+            "--out",
+            str(tmp_path / "cal.json"),
+            "--export-opencv",
+            str(tmp_path / "cam.yml"),
+        ]
+    )
+    assert rc == 0
+    out = capsys.readouterr().out
+    assert "per laser" in out and "laser  3" in out
+    cal = read_calibration(tmp_path / "cal.json")
+    doc = json.loads((tmp_path / "cal.json").read_text())
+    assert doc["residuals"]["rms_px"] > 0 and "per_view_rms_px" in doc["residuals"]
+    assert len(doc["uncertainty"]["lasers"]) == 4 and "staged" in doc["stages"] and "joint" in doc["stages"]
+    assert len(cal.board_poses) == len(obs.views)
+    fs = cv2.FileStorage(str(tmp_path / "cam.yml"), cv2.FILE_STORAGE_READ)
+    np.testing.assert_allclose(fs.getNode("camera_matrix").mat(), np.asarray(cal.rig.camera.K))
+    # several inputs of the same sizes go to a directory
+    obs2, _ = simulate(scene, noise=0.4, seed=9)
+    write_observations(tmp_path / "b.json", obs2)
+    rc = cli.main(["calibrate", str(tmp_path / "a.json"), str(tmp_path / "b.json"), "--out", str(tmp_path / "many")])
+    assert rc == 0
+    assert sorted(p.name for p in (tmp_path / "many").iterdir()) == ["a.json", "b.json"]
+
+
+def _mutated(tmp_path, obs, mutate):
+    doc = copy.deepcopy(observations_to_json(obs))
+    mutate(doc)
+    path = tmp_path / "bad.json"
+    path.write_text(json.dumps(doc))
+    return path
+
+
+@pytest.mark.parametrize(
+    "mutate, expected",
+    [
+        (lambda d: d.update(format="slcv-calibration/1"), "format"),
+        (lambda d: d["views"][0]["spots"][0].update(laser=7), "views[0].spots[0].laser"),
+        (lambda d: d["views"][1]["spots"][0].update(pixel=[1.0, float("inf")]), "views[1].spots[0].pixel[1]"),
+        (lambda d: d["views"][0]["spots"][0].update(board="roof"), "views[0].spots[0].board"),
+        (lambda d: d["views"][0]["boards"]["wall0"].append([1.0, 2.0]), "views[0].boards.wall0"),
+        (lambda d: d["mirror_shape"].update(radius=-1.0), "mirror_shape.radius"),
+        (lambda d: d.update(views=[]), "views"),
+        (lambda d: d.update(image_size=[640, 480, 3]), "image_size"),
+    ],
+)
+def test_cli_calibrate_bad_input(tmp_path, scene, capsys, mutate, expected):
+    obs, _ = simulate(scene, noise=0.0, seed=0)
+    path = _mutated(tmp_path, obs, mutate)
+    rc = cli.main(["calibrate", str(path), "--out", str(tmp_path / "cal.json")])
+    err = capsys.readouterr().err
+    assert rc != 0
+    assert err.count("\n") == 1 and str(path) in err and expected in err, err
+    assert not (tmp_path / "cal.json").exists()
+
+
+def test_cli_calibrate_truncated_file(tmp_path, scene, capsys):
+    obs, _ = simulate(scene, noise=0.0, seed=0)
+    write_observations(tmp_path / "o.json", obs)
+    text = (tmp_path / "o.json").read_text()
+    (tmp_path / "o.json").write_text(text[: len(text) // 3])
+    assert cli.main(["calibrate", str(tmp_path / "o.json"), "--out", str(tmp_path / "c.json")]) == 2
+    assert "not valid JSON" in capsys.readouterr().err
+    assert not (tmp_path / "c.json").exists()
+
+
+def test_camera_command_on_opencv_left_images(tmp_path, capsys):
+    images = sorted(glob.glob("tests/data/opencv_left/left*.jpg"))
+    assert len(images) == 13
+    rc = cli.main(["camera", *images, "--board", "9x6", "--square", "25", "--out", str(tmp_path / "cam.json")])
+    assert rc == 0
+    doc = json.loads((tmp_path / "cam.json").read_text())
+    rms, cv_rms = doc["residuals"]["rms_px"], doc["residuals"]["opencv_rms_px"]
+    assert rms <= 1.02 * cv_rms
+    fx = doc["camera"]["K"][0][0]
+    ref = cv2.FileStorage("tests/data/opencv_left/left_intrinsics.yml", cv2.FILE_STORAGE_READ)
+    fx_ref = ref.getNode("camera_matrix").mat()[0, 0]
+    assert abs(fx / fx_ref - 1) < 0.005
+    assert doc["residuals"]["images_without_board"] == []
+    assert read_calibration(tmp_path / "cam.json").rig.camera.width == 640
+    assert "rms" in capsys.readouterr().out
+
+
+def test_camera_command_lists_images_without_a_board(tmp_path, capsys):
+    images = sorted(glob.glob("tests/data/opencv_left/left*.jpg"))[:4]
+    blank = tmp_path / "blank.png"
+    cv2.imwrite(str(blank), np.zeros((480, 640), np.uint8))
+    rc = cli.main(["camera", *images, str(blank), "--out", str(tmp_path / "cam.json")])
+    assert rc == 0
+    assert str(blank) in json.loads((tmp_path / "cam.json").read_text())["residuals"]["images_without_board"]
+    bad = tmp_path / "broken.jpg"
+    bad.write_bytes(b"not an image")
+    assert cli.main(["camera", *images, str(bad), "--out", str(tmp_path / "c2.json")]) == 2
+    assert "broken.jpg" in capsys.readouterr().err
