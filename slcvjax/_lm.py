@@ -442,7 +442,9 @@ def solve(
         cost_out = jnp.where(ok, c_new, cost)
         lam = jnp.where(ok, jnp.maximum(lam / 3.0, 1e-12), lam * 4.0)
         it = it + 1
-        converged = (ok & (small | tiny)) | (~ok & tiny)
+        # at the minimum every step is rejected with a cost equal up to round-off
+        flat = jnp.abs(cost - c_new) <= 1e-12 * cost
+        converged = (ok & (small | tiny)) | (~ok & (tiny | flat))
         stalled = lam > 1e10
         out_of_steps = it >= max_steps
         code = jnp.where(converged, CONVERGED, jnp.where(stalled, STALLED, MAX_STEPS))

@@ -3,7 +3,6 @@ import glob
 import json
 
 import cv2
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -11,7 +10,7 @@ import pytest
 import slcvjax as sj
 from slcvjax import _lm, cli
 from slcvjax._calibrate import _arrays, _covariance, _solve, calibrate, cramer_rao, laser_errors, to_calibration
-from slcvjax._io import observations_to_json, read_calibration, read_observations, write_observations
+from slcvjax._io import observations_to_json, read_calibration, write_observations
 from slcvjax._problem import pack, stack_poses
 from slcvjax._simulate import make_scene, simulate
 from slcvjax._staged import CalibrationError, staged
