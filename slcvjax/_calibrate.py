@@ -305,7 +305,8 @@ def cramer_rao(truth: Calibration, obs: Observations, sigma: float) -> dict:
     chess_stack = stack_poses(chess) if chess else Pose(jnp.zeros((0, 3, 3)), jnp.zeros((0, 3)))
     params = Params(truth.rig, poses, chess_stack)
     masks = make_masks(params)
-    cov = _covariance(params, _arrays(pk), masks, "linear", 1.0, sigma=sigma)
+    # plain least squares (Huber at 1e9 px), sharing the compiled covariance of calibrate()
+    cov = _covariance(params, _arrays(pk), masks, "huber", 1e9, sigma=sigma)
     x_ref = laser_working_points(truth.rig, poses, pk)
     pos, ang = laser_std(truth.rig, np.asarray(cov.glob), x_ref)
     return {

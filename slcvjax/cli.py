@@ -54,7 +54,7 @@ def _cmd_demo(args) -> int:
     out = Path(args.out)
     print("slcvjax demo: the simulated reference rig (paper preset)", flush=True)
     print("[1/3] simulate", flush=True)
-    scene = make_scene("paper", n_views=args.views)
+    scene = make_scene("paper", n_lasers=args.lasers, n_views=args.views)
     obs, truth = simulate(scene, noise=args.noise, seed=args.seed)
     write_observations(out / "observations.json", obs)
     write_calibration(out / "truth.json", truth)
@@ -281,6 +281,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--noise", type=float, default=0.5, help="pixel noise sigma in px (default 0.5)")
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("--views", type=int, default=16, help="catadioptric views (default 16)")
+    d.add_argument("--lasers", type=int, default=10, help="lasers (default 10)")
     d.add_argument("--out", default="slcvjax-demo", help="output directory (default ./slcvjax-demo)")
     d.set_defaults(func=_cmd_demo)
     return p

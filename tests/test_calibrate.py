@@ -3,6 +3,7 @@ import glob
 import json
 
 import cv2
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -77,12 +78,18 @@ def test_schur_step_equals_dense_step(scene):
     pk = _arrays(pack(obs))
     params = _truth_params(truth, pack(obs))
     masks = _lm.make_masks(params, {"chess_poses"})
-    rows = _lm._rows(params, pk)
-    w, _ = _lm.robust_weights(rows, _lm.n_observations(pk), "huber", jnp.asarray(1.0))
-    ne = _lm.normal_equations(rows, w, params.n_global, params.n_blocks, masks.glob, masks.blocks)
+    n_obs, g, nb = _lm.n_observations(pk), params.n_global, params.n_blocks
+
+    @jax.jit
+    def normal(params, masks):
+        rows = _lm._rows(params, pk)
+        w, _ = _lm.robust_weights(rows, n_obs, "huber", jnp.asarray(1.0))
+        return _lm.normal_equations(rows, w, g, nb, masks.glob, masks.blocks)
+
+    ne = normal(params, masks)
     for lam in [0.0, 1e-3, 1.0]:
-        gs, ps = _lm.schur_step(ne, lam)
-        gd, pd = _lm.dense_step(ne, lam)
+        gs, ps = jax.jit(_lm.schur_step)(ne, lam)
+        gd, pd = jax.jit(_lm.dense_step)(ne, lam)
         scale = float(jnp.abs(gd).max())
         np.testing.assert_allclose(np.asarray(gs), np.asarray(gd), atol=1e-8 * scale, rtol=1e-7)
         np.testing.assert_allclose(np.asarray(ps), np.asarray(pd), atol=1e-8 * scale, rtol=1e-7)
@@ -96,11 +103,12 @@ def test_covariance_matches_a_small_monte_carlo(scene):
     pk = pack(obs)
     p_true = _truth_params(truth, pk)
     masks = _lm.make_masks(p_true)
-    cov = np.asarray(_covariance(p_true, _arrays(pk), masks, "linear", 1.0, sigma=sigma).glob)
+    # Huber at 1e9 px is plain least squares and shares the calibration's compiled solver
+    cov = np.asarray(_covariance(p_true, _arrays(pk), masks, "huber", 1e9, sigma=sigma).glob)
     errs = []
     for seed in range(1, 41):
         o, _ = simulate(scene, noise=sigma, seed=seed)
-        res = _solve(p_true, _arrays(pack(o)), masks, loss="linear", scale=1.0, max_steps=50)
+        res = _solve(p_true, _arrays(pack(o)), masks, loss="huber", scale=1e9, max_steps=200)
         est = res.params.rig
         e = np.concatenate(
             [

@@ -1,0 +1,139 @@
+"""Joint-solve benchmark: the project's Schur LM against scipy.optimize.least_squares.
+
+Run: ``python benchmarks/bench_calibrate.py [--views 16,64,256] [--no-scipy] [--out FILE]``.
+
+On the paper preset (0.5 px noise) every solver starts from the same perturbed truth and
+solves the same least-squares problem (plain squares, no robust loss):
+
+* ``schur_lm``: the project's LM (per-observation Jacobians, implicit derivative, Schur
+  complement over the poses), compiled once (compile time reported apart);
+* ``scipy_fd``: ``least_squares(method="lm")`` with 2-point finite differences of the same
+  jitted residual function (the baseline);
+* ``scipy_jac``: the same with the project's dense Jacobian (``jax.jacfwd``).
+
+The scaling part times the Schur LM over more views (one compilation each).  Results are
+printed and written as JSON with the machine's description.
+"""
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from bench_forward import machine
+from scipy.optimize import least_squares
+
+from slcvjax import _lm
+from slcvjax._calibrate import _arrays
+from slcvjax._problem import pack, stack_poses
+from slcvjax._simulate import make_scene, simulate
+
+
+def problem(n_views: int, seed: int = 1):
+    obs, truth = simulate(make_scene("paper", n_views=n_views), noise=0.5, seed=seed)
+    pk = pack(obs)
+    poses = stack_poses([truth.board_poses[v][b] for v, b in pk.pose_keys])
+    chess = stack_poses([truth.calibration_view_poses[c] for c in pk.chess_keys])
+    p_true = _lm.Params(truth.rig, poses, chess)
+    rng = np.random.default_rng(0)
+    dg = rng.normal(0, 1e-3, p_true.n_global)
+    dp = rng.normal(0, 1e-3, (p_true.n_blocks, 6))
+    start = p_true.retract(jnp.asarray(dg), jnp.asarray(dp))
+    return start, _arrays(pk), _lm.make_masks(start)
+
+
+solve = jax.jit(_lm.solve, static_argnames=("loss", "max_steps"))
+
+
+def time_schur(start, pk, masks):
+    t0 = time.perf_counter()
+    res = solve(start, pk, masks, loss="linear", scale=1.0, max_steps=200)
+    jax.block_until_ready(res.cost)
+    first = time.perf_counter() - t0
+    runs = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        res = solve(start, pk, masks, loss="linear", scale=1.0, max_steps=200)
+        jax.block_until_ready(res.cost)
+        runs.append(time.perf_counter() - t0)
+    run = float(np.median(runs))
+    return {
+        "compile_s": first - run,
+        "run_s": run,
+        "steps": int(res.steps),
+        "cost": float(res.cost),
+        "result": _lm.RESULT_NAMES[int(res.result)],
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--views", default="16,64,256")
+    ap.add_argument("--no-scipy", action="store_true")
+    ap.add_argument("--out", default="benchmarks/results/calibrate.json")
+    args = ap.parse_args()
+    out = {"benchmark": "calibrate", "machine": machine()}
+
+    start, pk, masks = problem(16)
+    g, nb = start.n_global, start.n_blocks
+    n_x = g + 6 * nb
+    rows0 = _lm.residual_rows(start, pk)
+    print(f"paper preset, 16 views: {n_x} parameters, {int(rows0.r.shape[0])} residuals", flush=True)
+    ours = time_schur(start, pk, masks)
+    out["schur_lm"] = ours
+    print(
+        f"schur_lm: {ours['run_s'] * 1e3:.0f} ms, {ours['steps']} steps, cost {ours['cost']:.4f} "
+        f"(compile {ours['compile_s']:.1f} s)",
+        flush=True,
+    )
+
+    if not args.no_scipy:
+
+        @jax.jit
+        def resid(x):
+            p = start.retract(x[:g], x[g:].reshape(nb, 6))
+            return _lm.residual_rows(p, pk).r
+
+        jac = jax.jit(jax.jacfwd(resid))
+        x0 = np.zeros(n_x)
+        t0 = time.perf_counter()
+        jax.block_until_ready(resid(x0))
+        jax.block_until_ready(jac(x0))
+        compile_scipy = time.perf_counter() - t0
+        for name, kw in [("scipy_jac", {"jac": lambda x: np.asarray(jac(x))}), ("scipy_fd", {"jac": "2-point"})]:
+            t0 = time.perf_counter()
+            sol = least_squares(lambda x: np.asarray(resid(x)), x0, method="lm", xtol=1e-10, ftol=1e-10, **kw)
+            dt = time.perf_counter() - t0
+            out[name] = {"run_s": dt, "nfev": int(sol.nfev), "njev": int(sol.njev or 0), "cost": float(sol.cost)}
+            print(f"{name}: {dt:.2f} s, {sol.nfev} residual evaluations, cost {sol.cost:.4f}", flush=True)
+        out["scipy_compile_s"] = compile_scipy
+        out["speedup_vs_scipy_fd"] = out["scipy_fd"]["run_s"] / ours["run_s"]
+        out["speedup_vs_scipy_jac"] = out["scipy_jac"]["run_s"] / ours["run_s"]
+        print(
+            f"speed-up of schur_lm: {out['speedup_vs_scipy_fd']:.1f}x over scipy_fd, "
+            f"{out['speedup_vs_scipy_jac']:.1f}x over scipy_jac",
+            flush=True,
+        )
+
+    scaling = []
+    for n in [int(v) for v in args.views.split(",") if v]:
+        s, p, m = problem(n)
+        r = time_schur(s, p, m)
+        r.update(views=n, per_view_per_step_ms=1e3 * r["run_s"] / (n * max(r["steps"], 1)))
+        scaling.append(r)
+        print(
+            f"views {n:5d}: {r['run_s'] * 1e3:8.0f} ms, {r['steps']} steps, "
+            f"{r['per_view_per_step_ms']:.3f} ms per view per step (compile {r['compile_s']:.0f} s)",
+            flush=True,
+        )
+    out["scaling"] = scaling
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(out, indent=1))
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
