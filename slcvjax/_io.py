@@ -352,7 +352,7 @@ def _unit(ctx: _Ctx, v: np.ndarray, where: str) -> np.ndarray:
 
 
 def calibration_to_json(cal: Calibration) -> dict:
-    """The ``slcv-calibration/1`` document of a :class:`Calibration`."""
+    """The ``slcv-calibration/1`` document of a :class:`Calibration` (camera only where the rig has no mirror)."""
     rig = cal.rig
     cam, mir, las = rig.camera, rig.mirror, rig.lasers
     doc: dict[str, Any] = {
@@ -363,19 +363,26 @@ def calibration_to_json(cal: Calibration) -> dict:
             "K": np.asarray(cam.K, float).tolist(),
             "dist": np.asarray(cam.dist, float).tolist(),
         },
-        "mirror": {
-            "kind": "cone",
-            "radius": float(mir.radius),
-            "height": float(mir.height),
-            "apex": np.asarray(mir.apex, float).tolist(),
-            "axis": np.asarray(mir.axis, float).tolist(),
-        },
-        "lasers": [
-            {"point": p.tolist(), "direction": d.tolist()}
-            for p, d in zip(np.asarray(las.points, float), np.asarray(las.directions, float), strict=True)
-        ],
-        "board_poses": [{b: _pose_json(p) for b, p in view.items()} for view in cal.board_poses],
     }
+    if mir is None:  # a camera-only calibration (``slcvjax camera``)
+        doc.update(cal.extra)
+        return doc
+    doc.update(
+        {
+            "mirror": {
+                "kind": "cone",
+                "radius": float(mir.radius),
+                "height": float(mir.height),
+                "apex": np.asarray(mir.apex, float).tolist(),
+                "axis": np.asarray(mir.axis, float).tolist(),
+            },
+            "lasers": [
+                {"point": p.tolist(), "direction": d.tolist()}
+                for p, d in zip(np.asarray(las.points, float), np.asarray(las.directions, float), strict=True)
+            ],
+            "board_poses": [{b: _pose_json(p) for b, p in view.items()} for view in cal.board_poses],
+        }
+    )
     if cal.calibration_view_poses is not None:
         doc["calibration_view_poses"] = [None if p is None else _pose_json(p) for p in cal.calibration_view_poses]
     doc.update(cal.extra)

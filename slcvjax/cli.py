@@ -221,29 +221,12 @@ def _cmd_camera(args) -> int:
             }
         },
     )
-    _write_camera_only(args.out, doc)
+    write_calibration(args.out, doc)
     print(f"wrote {args.out}")
     if args.export_opencv:
         export_opencv(args.export_opencv, c)
         print(f"wrote {args.export_opencv}")
     return 0
-
-
-def _write_camera_only(path, cal) -> None:
-    from ._io import CALIBRATION_FORMAT, write_json_atomic
-
-    cam = cal.rig.camera
-    doc = {
-        "format": CALIBRATION_FORMAT,
-        "camera": {
-            "width": cam.width,
-            "height": cam.height,
-            "K": np.asarray(cam.K, float).tolist(),
-            "dist": np.asarray(cam.dist, float).tolist(),
-        },
-    }
-    doc.update(cal.extra)
-    write_json_atomic(path, doc)
 
 
 def build_parser() -> argparse.ArgumentParser:
