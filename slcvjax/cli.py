@@ -229,6 +229,121 @@ def _cmd_camera(args) -> int:
     return 0
 
 
+def _parse_axis(text: str | None):
+    if text is None:
+        return (0.0, 0.0, 1.0)
+    try:
+        axis = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise ValueError(f"--axis: expected three numbers x,y,z, got {text!r}") from None
+    if len(axis) != 3 or not np.all(np.isfinite(axis)) or np.linalg.norm(axis) < 1e-12:
+        raise ValueError(f"--axis: expected a non-zero finite vector x,y,z, got {text!r}")
+    return tuple(axis)
+
+
+def _print_points(names, views, circles) -> None:
+    for k, (name, vp) in enumerate(zip(names, views, strict=True)):
+        flagged = int(np.sum(vp.parallel))
+        line = f"{name:>10s}  {len(vp.lasers):3d} points"
+        if flagged:
+            line += f" ({flagged} nearly parallel)"
+        if vp.missing:
+            line += f", {len(vp.missing)} spot(s) without a point"
+        c = circles[k] if circles else None
+        if c is not None:
+            line += f"  diameter {c.diameter:.3f} +- {_fmt(c.diameter_std)} mm  fit rms {c.rms:.3f} mm"
+        print(line)
+
+
+def _cmd_measure(args) -> int:
+    from ._io import read_calibration, read_observations, write_json_atomic
+    from ._pipe import measure_observations, measurement_inputs, points_document, view_circle
+
+    cal = read_calibration(args.calibration)
+    sigma_cal, cov = measurement_inputs(args.calibration, cal)
+    sigma = args.pixel_sigma if args.pixel_sigma is not None else sigma_cal
+    if sigma is None:
+        raise ValueError(f"{args.calibration}: residuals: no residual sigma to use; give --pixel-sigma")
+    obs = read_observations(args.input)
+    if obs.n_lasers != cal.rig.lasers.n:
+        raise ValueError(
+            f"{args.input}: n_lasers: {obs.n_lasers}, but the calibration {args.calibration} has "
+            f"{cal.rig.lasers.n} lasers"
+        )
+    axis = _parse_axis(args.axis)
+    views = measure_observations(cal.rig, obs, sigma, cov)
+    names = [v.name for v in obs.views]
+    circles = None
+    if args.fit_circle:
+        circles = [view_circle(vp, axis, name=f"{args.input}: views[{k}] ({names[k]})") for k, vp in enumerate(views)]
+    meta = {
+        "calibration": str(args.calibration),
+        "input": str(args.input),
+        "pixel_sigma": sigma,
+        "uncertainty": "pixel noise and calibration covariance" if cov is not None else "pixel noise only",
+    }
+    doc = points_document(names, views, circles, axis if args.fit_circle else None, meta)
+    write_json_atomic(args.out, doc)
+    _print_points(names, views, circles)
+    print(f"pixel sigma {sigma:.3f} px; uncertainty from {meta['uncertainty']}")
+    print(f"wrote {args.out}")
+    return 0
+
+
+def _pipe_report(res, paper: bool = True) -> None:
+    s = res["summary"]
+    print(
+        f"pipe {s['true_diameter_mm']:g} mm, {s['poses']} poses, {s['points']} points: "
+        f"mean diameter {_fmt(s['mean_diameter_mm'])} mm (median |error| "
+        f"{_fmt(s['median_abs_diameter_error_mm'])} mm, rms reported std {_fmt(s['rms_diameter_std_mm'])} mm)"
+    )
+    print(
+        f"per-point fit error: mean {_fmt(s['fit_error_mean_mm'])} mm, max {_fmt(s['fit_error_max_mm'])} mm; "
+        f"point error vs truth rms {_fmt(s['point_error_rms_mm'])} mm (reported std rms "
+        f"{_fmt(s['point_std_rms_mm'])} mm, {s['nearly_parallel']} nearly parallel points left out)"
+    )
+    if paper:
+        print("paper (Chen et al. 2019, real sensor): diameter 150.042 mm, fit errors < 3 mm, mean 1.5 mm")
+
+
+def _cmd_pipe(args) -> int:
+    from ._io import read_calibration, write_json_atomic
+    from ._pipe import measurement_inputs, pipe_experiment, pipe_scene, points_document
+    from ._plots import plot_pipe
+    from ._simulate import paper_rig
+
+    t0 = time.perf_counter()
+    out = Path(args.out)
+    rig_cov = None
+    if args.calibration:
+        cal = read_calibration(args.calibration)
+        _, rig_cov = measurement_inputs(args.calibration, cal)
+        rig = cal.rig
+        truth = paper_rig(rig.lasers.n)
+        print(f"measuring with {args.calibration}; the pipe is simulated with the true paper rig", flush=True)
+    else:
+        truth = paper_rig(args.lasers)
+        rig = truth
+        print("measuring with the true paper rig (give --calibration to use a calibration)", flush=True)
+    scene = pipe_scene(truth, args.diameter, args.poses, args.offset, args.tilt, seed=args.seed)
+    res = pipe_experiment(rig, scene, args.noise, seed=args.seed, rig_cov=rig_cov)
+    obs = res["observations"]
+    from ._io import write_observations
+
+    write_observations(out / "pipe_observations.json", obs)
+    names = [v.name for v in obs.views]
+    views = [p["points"] for p in res["poses"]]
+    circles = [p["circle"] for p in res["poses"]]
+    meta = {"pixel_sigma": args.noise, "simulation": obs.extra["simulation"], "summary": res["summary"]}
+    write_json_atomic(out / "points.json", points_document(names, views, circles, (0.0, 0.0, 1.0), meta))
+    plots = plot_pipe(res, out)
+    _print_points(names, views, circles)
+    _pipe_report(res)
+    print(f"wrote {out}/ (pipe_observations.json, points.json, {', '.join(p.name for p in plots)}) "
+          f"in {time.perf_counter() - t0:.1f} s")  # fmt: skip
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="slcvjax", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -259,6 +374,27 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--out", required=True, help="output slcv-calibration/1 file (camera only)")
     k.add_argument("--export-opencv", help="also write OpenCV FileStorage YAML")
     k.set_defaults(func=_cmd_camera)
+
+    m = sub.add_parser("measure", help="3D laser points (and pipe circles) from spots with a calibration")
+    m.add_argument("calibration", help="slcv-calibration/1 file")
+    m.add_argument("input", help="slcv-observations/1 file whose views carry spots (their board may be absent)")
+    m.add_argument("--out", required=True, help="output slcv-points/1 file")
+    m.add_argument("--fit-circle", action="store_true", help="fit a circle per view across the axis")
+    m.add_argument("--pixel-sigma", type=float, default=None, help="spot pixel noise in px (default: calibration's)")
+    m.add_argument("--axis", default=None, help="pipe axis x,y,z in the camera frame (default 0,0,1)")
+    m.set_defaults(func=_cmd_measure)
+
+    q = sub.add_parser("pipe", help="the paper's pipe experiment on the simulated rig")
+    q.add_argument("--calibration", help="measure with this calibration (default: the true rig)")
+    q.add_argument("--noise", type=float, default=0.5, help="spot pixel noise in px (default 0.5)")
+    q.add_argument("--diameter", type=float, default=150.0, help="pipe diameter in mm (default 150)")
+    q.add_argument("--poses", type=int, default=16, help="sensor poses in the pipe (default 16)")
+    q.add_argument("--offset", type=float, default=10.0, help="largest offset of the pipe's axis in mm (default 10)")
+    q.add_argument("--tilt", type=float, default=0.0, help="pipe axis tilt from the camera z axis in deg (default 0)")
+    q.add_argument("--lasers", type=int, default=10, help="lasers of the simulated rig (default 10)")
+    q.add_argument("--seed", type=int, default=0)
+    q.add_argument("--out", default="slcvjax-pipe", help="output directory (default ./slcvjax-pipe)")
+    q.set_defaults(func=_cmd_pipe)
 
     d = sub.add_parser("demo", help="the main job on the simulated reference rig")
     d.add_argument("--noise", type=float, default=0.5, help="pixel noise sigma in px (default 0.5)")

@@ -1,0 +1,307 @@
+"""The paper's pipe experiment: the sensor inside a pipe, spots measured, diameter fitted.
+
+The sensor sits at ``n_poses`` positions inside a straight pipe of the given
+diameter (150 mm in the paper).  The pipe's axis is parallel to the camera's z
+axis by default (as the paper assumes when it fits the circle in the camera's
+xy plane) and passes at a random offset from the camera centre; a tilt can be
+given.  Each laser's beam meets the pipe wall once (the emitter is inside); the
+spot is projected through the mirror, and only spots that are really visible
+are written.
+"""
+
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._io import Observations, SpotObs, ViewObs
+from ._measure import Circle, ViewPoints, fit_circle_3d, measure_spots
+from ._mirror import project_through_mirror
+from ._rig import Rig
+
+
+@dataclass
+class PipeScene:
+    """A straight pipe seen by the rig at several poses (all in the camera frame).
+
+    ``centers[i]`` is a point of the pipe's axis in pose ``i`` and ``axes[i]`` its
+    unit direction.
+    """
+
+    rig: Rig
+    diameter: float
+    centers: np.ndarray
+    axes: np.ndarray
+
+
+def pipe_scene(
+    rig: Rig, diameter: float = 150.0, n_poses: int = 16, max_offset: float = 10.0, tilt_deg: float = 0.0, seed: int = 0
+) -> PipeScene:
+    """``n_poses`` poses of the rig inside a pipe: axis offsets uniform in a disc of ``max_offset`` mm.
+
+    With ``tilt_deg > 0`` each pose's pipe axis is tilted from the camera's z axis
+    by that angle towards a random azimuth.
+    """
+    if not np.isfinite(diameter) or diameter <= 0:
+        raise ValueError(f"pipe diameter must be positive, got {diameter}")
+    if n_poses < 1:
+        raise ValueError(f"n_poses must be at least 1, got {n_poses}")
+    rng = np.random.default_rng(seed)
+    r = max_offset * np.sqrt(rng.uniform(0, 1, n_poses))
+    phi = rng.uniform(0, 2 * np.pi, n_poses)
+    centers = np.stack([r * np.cos(phi), r * np.sin(phi), np.zeros(n_poses)], axis=1)
+    az = rng.uniform(0, 2 * np.pi, n_poses)
+    t = np.radians(tilt_deg)
+    axes = np.stack([np.sin(t) * np.cos(az), np.sin(t) * np.sin(az), np.full(n_poses, np.cos(t))], axis=1)
+    return PipeScene(rig, float(diameter), centers, axes)
+
+
+def beam_pipe_point(p, d, center, axis, radius):
+    """Where the beam ``p + lam d`` (lam > 0) meets the cylinder; ``(x, ok)``."""
+    w = p - center
+    wp = w - jnp.dot(w, axis) * axis
+    dp = d - jnp.dot(d, axis) * axis
+    a = jnp.dot(dp, dp)
+    b = 2.0 * jnp.dot(wp, dp)
+    c = jnp.dot(wp, wp) - radius**2
+    disc = b * b - 4.0 * a * c
+    ok = (a > 1e-12) & (disc >= 0.0) & (c < 0.0)  # the emitter is inside the pipe
+    lam = (-b + jnp.sqrt(jnp.where(ok, disc, 0.0))) / (2.0 * jnp.where(ok, a, 1.0))
+    return p + lam * d, ok
+
+
+@jax.jit
+def _pipe_spots(rig: Rig, centers, axes, radius):
+    def one_pose(c, a):
+        def one_laser(p, d):
+            x, ok = beam_pipe_point(p, d, c, a, radius)
+            res = project_through_mirror(rig.camera, rig.mirror, x)
+            return x, res.uv, ok & res.valid
+
+        return jax.vmap(one_laser)(rig.lasers.points, rig.lasers.directions)
+
+    return jax.vmap(one_pose)(centers, axes)
+
+
+def simulate_pipe(scene: PipeScene, noise: float = 0.0, seed: int = 0) -> tuple[Observations, np.ndarray]:
+    """Spot observations of a pipe scene with Gaussian pixel noise, and the true points.
+
+    Returns the observations (one view per pose, spots without a board; the
+    pipe's truth in ``extra["simulation"]["pipe"]``) and the true spot points
+    (n_poses, n_lasers, 3), NaN where a spot is not visible.
+    """
+    if not np.isfinite(noise) or noise < 0:
+        raise ValueError(f"noise must be a non-negative number of pixels, got {noise}")
+    rng = np.random.default_rng(seed)
+    rig = scene.rig
+    x, uv, ok = (
+        np.asarray(a) for a in _pipe_spots(rig, jnp.asarray(scene.centers), jnp.asarray(scene.axes), scene.diameter / 2)
+    )
+    views = []
+    for i in range(len(scene.centers)):
+        spots = []
+        for laser in np.flatnonzero(ok[i]):
+            px = uv[i, laser] + (rng.normal(0.0, noise, 2) if noise > 0 else 0.0)
+            spots.append(SpotObs(int(laser), None, np.asarray(px, float)))
+        views.append(ViewObs(f"pipe{i:02d}", {}, spots, np.zeros((0, 2))))
+    cam = rig.camera
+    obs = Observations(
+        image_size=(cam.width, cam.height),
+        mirror_radius=float(rig.mirror.radius),
+        mirror_height=float(rig.mirror.height),
+        n_lasers=rig.lasers.n,
+        boards={},
+        calibration_views=[],
+        views=views,
+        extra={
+            "simulation": {
+                "pipe": {
+                    "diameter": scene.diameter,
+                    "centers": scene.centers.tolist(),
+                    "axes": scene.axes.tolist(),
+                },
+                "noise_px": float(noise),
+                "seed": int(seed),
+            }
+        },
+    )
+    return obs, np.where(ok[..., None], x, np.nan)
+
+
+def measure_observations(
+    rig: Rig, obs: Observations, pixel_sigma: float, rig_cov: np.ndarray | None = None
+) -> list[ViewPoints]:
+    """Triangulate every spot of every view of an observations file (see :func:`measure_spots`)."""
+    if obs.n_lasers != rig.lasers.n:
+        raise ValueError(f"the observations have {obs.n_lasers} lasers, the calibration {rig.lasers.n}")
+    lasers, pixels, view_of = [], [], []
+    for v, view in enumerate(obs.views):
+        for s in view.spots:
+            lasers.append(s.laser)
+            pixels.append(s.pixel)
+            view_of.append(v)
+    return measure_spots(
+        rig, np.asarray(lasers, int), np.reshape(pixels, (-1, 2)), np.asarray(view_of, int), len(obs.views),
+        pixel_sigma, rig_cov,
+    )  # fmt: skip
+
+
+def view_circle(vp: ViewPoints, axis=(0.0, 0.0, 1.0), name: str = "") -> Circle:
+    """The circle through a view's points that are not nearly parallel to their rays.
+
+    Raises ``ValueError`` naming the view when fewer than 3 such points remain.
+    """
+    use = np.flatnonzero(~vp.parallel)
+    if use.size < 3:
+        extra = f" ({int(np.sum(vp.parallel))} more nearly parallel to their rays)" if np.any(vp.parallel) else ""
+        raise ValueError(f"view {name}: {use.size} usable points{extra}, a circle needs at least 3")
+    sel = (3 * use[:, None] + np.arange(3)).ravel()
+    return fit_circle_3d(vp.xyz[use], vp.cov[np.ix_(sel, sel)], axis=axis)
+
+
+def pipe_experiment(
+    rig: Rig,
+    scene: PipeScene,
+    noise: float,
+    seed: int = 0,
+    pixel_sigma: float | None = None,
+    rig_cov: np.ndarray | None = None,
+    axis=(0.0, 0.0, 1.0),
+) -> dict:
+    """Simulate the pipe scene with its true rig, measure with ``rig`` (e.g. a calibration).
+
+    The circles are fitted across ``axis`` (the camera's z axis, as in the paper),
+    from the points that are not nearly parallel to their rays.  Returns per pose
+    the true and measured points, the fitted circle and the point errors, with
+    summary figures: the mean diameter, the per-point fit errors (mean, max) and
+    the point errors against the truth beside their reported standard deviations
+    (over the points used).
+    """
+    obs, truth = simulate_pipe(scene, noise=noise, seed=seed)
+    sigma = noise if pixel_sigma is None else pixel_sigma
+    views = measure_observations(rig, obs, sigma, rig_cov)
+    poses = []
+    for i, vp in enumerate(views):
+        circle = view_circle(vp, axis) if np.sum(~vp.parallel) >= 3 else None
+        true_xyz = truth[i, vp.lasers]
+        poses.append({"points": vp, "truth": true_xyz, "error": vp.xyz - true_xyz, "circle": circle})
+    used = [~p["points"].parallel for p in poses]
+    errs = np.concatenate([p["error"][u] for p, u in zip(poses, used, strict=True)]) if poses else np.zeros((0, 3))
+    stds = np.concatenate([p["points"].std[u] for p, u in zip(poses, used, strict=True)]) if poses else np.zeros((0, 3))
+    circles = [p["circle"] for p in poses if p["circle"] is not None]
+    fit_err = np.abs(np.concatenate([c.residuals for c in circles])) if circles else np.zeros(0)
+    diam = np.array([c.diameter for c in circles])
+    d_std = np.array([c.diameter_std for c in circles], dtype=float)
+
+    def stat(f, x):
+        return float(f(x)) if np.size(x) else None
+
+    return {
+        "observations": obs,
+        "poses": poses,
+        "diameters": diam,
+        "diameter_stds": d_std,
+        "summary": {
+            "true_diameter_mm": scene.diameter,
+            "poses": len(poses),
+            "points": int(sum(len(p["points"].lasers) for p in poses)),
+            "nearly_parallel": int(sum(np.sum(p["points"].parallel) for p in poses)),
+            "circles": len(circles),
+            "mean_diameter_mm": stat(np.mean, diam),
+            "median_abs_diameter_error_mm": stat(np.median, np.abs(diam - scene.diameter)),
+            "rms_diameter_std_mm": stat(lambda x: np.sqrt(np.mean(x**2)), d_std),
+            "fit_error_mean_mm": stat(np.mean, fit_err),
+            "fit_error_max_mm": stat(np.max, fit_err),
+            "point_error_rms_mm": stat(lambda e: np.sqrt(np.mean(np.sum(e**2, axis=1))), errs),
+            "point_std_rms_mm": stat(lambda e: np.sqrt(np.mean(np.sum(e**2, axis=1))), stds),
+        },
+    }
+
+
+# ----------------------------------------------------------------------------- calibration input and output
+
+
+def measurement_inputs(path, cal) -> tuple[float | None, np.ndarray | None]:
+    """From a read calibration: the default pixel sigma and the rig covariance (or None).
+
+    The pixel sigma is the calibration's per-coordinate residual sigma
+    (``residuals.sigma_px``; ``rms_px / sqrt(2)`` when only the 2D RMS is there).
+    The covariance is ``uncertainty.covariance.matrix`` when present; a malformed
+    one raises :class:`FormatError` naming the file and the field.
+    """
+    from ._io import FormatError
+
+    if cal.rig.mirror is None or cal.rig.lasers.n == 0:
+        raise FormatError(f"{path}: mirror, lasers: a camera-only calibration cannot measure laser spots")
+    res = cal.extra.get("residuals") or {}
+    sigma = res.get("sigma_px")
+    if sigma is None and res.get("rms_px") is not None:
+        sigma = float(res["rms_px"]) / np.sqrt(2.0)
+    if sigma is not None and (not np.isfinite(float(sigma)) or float(sigma) < 0):
+        raise FormatError(f"{path}: residuals.sigma_px: expected a non-negative number, got {sigma}")
+    mat = ((cal.extra.get("uncertainty") or {}).get("covariance") or {}).get("matrix")
+    cov = None
+    if mat is not None:
+        g = cal.rig.tangent_dim
+        try:
+            cov = np.asarray(mat, dtype=float)
+        except (TypeError, ValueError):
+            raise FormatError(f"{path}: uncertainty.covariance.matrix: not a numeric matrix") from None
+        if cov.shape != (g, g):
+            raise FormatError(
+                f"{path}: uncertainty.covariance.matrix: shape {cov.shape}, expected {(g, g)} "
+                f"(camera 9 + mirror 5 + 4 per laser)"
+            )
+        if not np.all(np.isfinite(cov)):
+            i, j = np.argwhere(~np.isfinite(cov))[0]
+            raise FormatError(f"{path}: uncertainty.covariance.matrix[{i}][{j}]: non-finite value")
+    return (None if sigma is None else float(sigma)), cov
+
+
+def points_document(
+    names: list[str],
+    views: list[ViewPoints],
+    circles: list[Circle | None] | None = None,
+    axis=None,
+    meta: dict | None = None,
+) -> dict:
+    """The ``slcv-points/1`` document of measured views (with their circles when fitted)."""
+    out_views = []
+    for k, (name, vp) in enumerate(zip(names, views, strict=True)):
+        std = vp.std
+        pts = [
+            {
+                "laser": int(vp.lasers[i]),
+                "spot": int(vp.spot_index[i]),
+                "xyz": vp.xyz[i].tolist(),
+                "std": std[i].tolist(),
+                "angle_deg": float(np.degrees(vp.angle[i])),
+                "gap_mm": float(vp.gap[i]),
+                "nearly_parallel": bool(vp.parallel[i]),
+            }
+            for i in range(len(vp.lasers))
+        ]
+        view = {
+            "name": name,
+            "points": pts,
+            "missing": [{"spot": s, "laser": las, "reason": why} for s, las, why in vp.missing],
+        }
+        c = None if circles is None else circles[k]
+        if c is not None:
+            view["circle"] = {
+                "center": c.center.tolist(),
+                "center_std": None if c.center_std is None else c.center_std.tolist(),
+                "diameter": c.diameter,
+                "diameter_std": c.diameter_std,
+                "rms": c.rms,
+                "residuals": c.residuals.tolist(),
+                "points_used": int(c.residuals.size),
+            }
+        out_views.append(view)
+    doc: dict = {"format": "slcv-points/1", "units": "mm"}
+    if axis is not None:
+        doc["axis"] = np.asarray(axis, float).tolist()
+    doc.update(meta or {})
+    doc["views"] = out_views
+    return doc
