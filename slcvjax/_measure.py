@@ -9,9 +9,10 @@ as a diagnostic.
 
 Where ray and line are nearly parallel the depth along the line is ill-defined and
 its first-order uncertainty is not trustworthy: a point is flagged ``parallel``
-when the ray-line angle is below ``PARALLEL_FACTOR`` times the angular standard
-deviation of the reflected ray caused by the pixel noise (the cone magnifies it:
-about 0.3 deg at 0.5 px on the paper's rig).  Below that the angle itself is
+when the ray-line angle is below ``PARALLEL_FACTOR`` times its own uncertainty: the
+angular standard deviation of the reflected ray caused by the pixel noise (the cone
+magnifies it: about 0.3 deg at 0.5 px on the paper's rig) combined with that of the
+laser's direction when the calibration's covariance is given.  Below that the angle itself is
 uncertain by a sizeable fraction and the error distribution grows heavy tails
 (measured on the paper's rig in a pipe at 0.5 px: RMS error / reported std 1.06
 over the unflagged points, and 0.004 over all points, where a few near-parallel
@@ -115,7 +116,8 @@ class ViewPoints:
         gap: (n,) distance between the reflected ray and the laser line (mm).
         angle: (n,) angle between the reflected ray and the laser line (rad).
         ray_std: (n,) angular std of the reflected ray from the pixel noise (rad).
-        parallel: (n,) the ray and the line are nearly parallel (see the module's notes).
+        parallel: (n,) the ray and the line are nearly parallel given the pixel noise and
+            the laser's direction uncertainty (see the module's notes).
         missing: spots that gave no point: ``(spot_index, laser, reason)``.
     """
 
@@ -172,6 +174,14 @@ def measure_spots(
         j_px, j_rig, ray_rate = np.zeros((0, 3, 2)), np.zeros((0, 3, rig.tangent_dim)), np.zeros(0)
     if rig_cov is not None and rig_cov.shape != (rig.tangent_dim, rig.tangent_dim):
         raise ValueError(f"rig covariance has shape {rig_cov.shape}, expected {(rig.tangent_dim,) * 2}")
+    # the lasers' direction std (rad) from the calibration: their tilt block (e1, e2)
+    n_las = rig.lasers.n
+    dir_std = np.zeros(n_las)
+    if rig_cov is not None:
+        base = rig.tangent_dim - 4 * n_las
+        for k in range(n_las):
+            i = base + 4 * k + 2
+            dir_std[k] = np.sqrt(max(rig_cov[i, i] + rig_cov[i + 1, i + 1], 0.0))
     out = []
     for v in range(n_views):
         idx = np.flatnonzero(view_of == v)  # spots of view v, in their order
@@ -198,7 +208,7 @@ def measure_spots(
                 gap=gap[good],
                 angle=angle[good],
                 ray_std=pixel_sigma * ray_rate[good],
-                parallel=angle[good] < PARALLEL_FACTOR * pixel_sigma * ray_rate[good],
+                parallel=angle[good] < PARALLEL_FACTOR * np.hypot(pixel_sigma * ray_rate[good], dir_std[lasers[good]]),
                 missing=missing,
             )
         )
@@ -236,6 +246,7 @@ class Circle:
     residuals: np.ndarray
     rms: float
     center_std: np.ndarray | None = None
+    nearly_parallel_used: int = 0
 
 
 def _circle_cost(theta, q, w):
@@ -267,13 +278,20 @@ def fit_circle(q: np.ndarray, cov_q: np.ndarray | None = None, weighted: bool = 
     a = np.column_stack([2.0 * q, np.ones(n)])
     if np.linalg.matrix_rank(a) < 3:
         raise ValueError("the points are collinear: no circle")
-    sol, *_ = np.linalg.lstsq(a, np.sum(q**2, axis=1), rcond=None)
+    blocks = None
+    w0 = np.ones(n)
+    if cov_q is not None and weighted:
+        blocks = np.stack([np.asarray(cov_q)[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] for i in range(n)])
+        tr = np.trace(blocks, axis1=1, axis2=2)
+        if np.all(tr > 0) and np.all(np.isfinite(tr)):
+            w0 = np.min(tr) / tr  # the start weighs points by their overall variance
+    sw0 = np.sqrt(w0)
+    sol, *_ = np.linalg.lstsq(a * sw0[:, None], sw0 * np.sum(q**2, axis=1), rcond=None)
     theta = np.array([sol[0], sol[1], np.sqrt(max(sol[2] + sol[:2] @ sol[:2], 0.0))])
     w = np.ones(n)
-    if cov_q is not None and weighted:
+    if blocks is not None:
         u = q - theta[:2]
         u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-300)
-        blocks = np.stack([np.asarray(cov_q)[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] for i in range(n)])
         var = np.einsum("ni,nij,nj->n", u, blocks, u)
         if np.all(var > 0):
             w = np.min(var) / var
@@ -289,10 +307,14 @@ def fit_circle(q: np.ndarray, cov_q: np.ndarray | None = None, weighted: bool = 
         if np.max(np.abs(step)) < 1e-13 * max(1.0, abs(theta[2])):
             break
     res = np.linalg.norm(q - theta[:2], axis=1) - theta[2]
+    if not np.all(np.isfinite(theta)) or not np.all(np.isfinite(res)):
+        raise ValueError("the circle fit did not converge (non-finite centre or radius)")
     d_std = c_std = None
     if cov_q is not None:
         sens = np.asarray(_circle_sensitivity(jnp.asarray(theta), jnp.asarray(q), jnp.asarray(w))).reshape(3, 2 * n)
         ct = sens @ np.asarray(cov_q) @ sens.T
+        if not np.all(np.isfinite(ct)):
+            raise ValueError("the circle's covariance is not finite (a point's uncertainty is unbounded)")
         d_std = float(2.0 * np.sqrt(max(ct[2, 2], 0.0)))
         c_std = np.sqrt(np.maximum(np.diag(ct)[:2], 0.0))
     return Circle(theta[:2], float(2.0 * theta[2]), d_std, res, float(np.sqrt(np.mean(res**2))), c_std)

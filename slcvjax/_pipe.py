@@ -148,16 +148,22 @@ def measure_observations(
 
 
 def view_circle(vp: ViewPoints, axis=(0.0, 0.0, 1.0), name: str = "") -> Circle:
-    """The circle through a view's points that are not nearly parallel to their rays.
+    """The circle through a view's points, leaving out those nearly parallel to their rays.
 
-    Raises ``ValueError`` naming the view when fewer than 3 such points remain.
+    When fewer than 3 points remain, all the view's points are used (each weighted by
+    its radial variance) and ``nearly_parallel_used`` says how many flagged points
+    entered the fit.  Raises ``ValueError`` naming the view when it has fewer than 3
+    points in all.
     """
     use = np.flatnonzero(~vp.parallel)
     if use.size < 3:
-        extra = f" ({int(np.sum(vp.parallel))} more nearly parallel to their rays)" if np.any(vp.parallel) else ""
-        raise ValueError(f"view {name}: {use.size} usable points{extra}, a circle needs at least 3")
+        use = np.arange(len(vp.lasers))
+    if use.size < 3:
+        raise ValueError(f"view {name}: {use.size} points, a circle needs at least 3")
     sel = (3 * use[:, None] + np.arange(3)).ravel()
-    return fit_circle_3d(vp.xyz[use], vp.cov[np.ix_(sel, sel)], axis=axis)
+    circle = fit_circle_3d(vp.xyz[use], vp.cov[np.ix_(sel, sel)], axis=axis)
+    circle.nearly_parallel_used = int(np.sum(vp.parallel[use]))
+    return circle
 
 
 def pipe_experiment(
@@ -183,7 +189,10 @@ def pipe_experiment(
     views = measure_observations(rig, obs, sigma, rig_cov)
     poses = []
     for i, vp in enumerate(views):
-        circle = view_circle(vp, axis) if np.sum(~vp.parallel) >= 3 else None
+        try:
+            circle = view_circle(vp, axis, name=obs.views[i].name)
+        except ValueError:  # too few points, or a fit that cannot be trusted: no circle for this pose
+            circle = None
         true_xyz = truth[i, vp.lasers]
         poses.append({"points": vp, "truth": true_xyz, "error": vp.xyz - true_xyz, "circle": circle})
     used = [~p["points"].parallel for p in poses]
@@ -207,6 +216,9 @@ def pipe_experiment(
             "poses": len(poses),
             "points": int(sum(len(p["points"].lasers) for p in poses)),
             "nearly_parallel": int(sum(np.sum(p["points"].parallel) for p in poses)),
+            "median_ray_line_angle_deg": stat(
+                np.median, np.degrees(np.concatenate([p["points"].angle for p in poses])) if poses else []
+            ),
             "circles": len(circles),
             "mean_diameter_mm": stat(np.mean, diam),
             "median_abs_diameter_error_mm": stat(np.median, np.abs(diam - scene.diameter)),
@@ -297,6 +309,7 @@ def points_document(
                 "rms": c.rms,
                 "residuals": c.residuals.tolist(),
                 "points_used": int(c.residuals.size),
+                "nearly_parallel_used": c.nearly_parallel_used,
             }
         out_views.append(view)
     doc: dict = {"format": "slcv-points/1", "units": "mm"}

@@ -53,20 +53,20 @@ def _cmd_demo(args) -> int:
     t0 = time.perf_counter()
     out = Path(args.out)
     print("slcvjax demo: the simulated reference rig (paper preset)", flush=True)
-    print("[1/3] simulate", flush=True)
+    print("[1/4] simulate", flush=True)
     scene = make_scene("paper", n_lasers=args.lasers, n_views=args.views)
     obs, truth = simulate(scene, noise=args.noise, seed=args.seed)
     write_observations(out / "observations.json", obs)
     write_calibration(out / "truth.json", truth)
     print(_summary(obs, truth))
-    print("[2/3] calibrate: staged, then joint (the first run compiles, about a minute)", flush=True)
+    print("[2/4] calibrate: staged, then joint (the first run compiles, about a minute)", flush=True)
     t1 = time.perf_counter()
     res = calibrate(obs)
     t_cal = time.perf_counter() - t1
     cal = to_calibration(res, obs)
     write_calibration(out / "calibration.json", cal)
     print_report(cal, "calibration")
-    print("[3/3] compare with the truth and the Cramer-Rao bound", flush=True)
+    print("[3/4] compare with the truth and the Cramer-Rao bound", flush=True)
     bound = cramer_rao(truth, obs, max(args.noise, 1e-3))
     pos, ang = laser_errors(res.rig, truth.rig, bound["x_ref"])
     st = res.staged
@@ -86,8 +86,28 @@ def _cmd_demo(args) -> int:
         f"RMS    {rms(pos):6.3f} {np.degrees(rms(ang)):6.3f}     bound {bound['position_rms_mm']:.3f} "
         f"{np.degrees(bound['direction_rms_rad']):.3f}     staged {rms(pos_s):.3f} {np.degrees(rms(ang_s)):.3f}"
     )
-    print(f"timings: calibration {t_cal:.1f} s (compilation included), total {time.perf_counter() - t0:.1f} s")
-    print(f"wrote {out}/ (observations.json, truth.json, calibration.json)")
+    print(f"[4/4] measure: the sensor in a 150 mm pipe at 16 poses, {args.noise:g} px, with this calibration")
+    from ._io import write_json_atomic
+    from ._pipe import measurement_inputs, pipe_experiment, pipe_scene, points_document
+    from ._plots import plot_pipe
+
+    t2 = time.perf_counter()
+    _, rig_cov = measurement_inputs("calibration.json", cal)
+    pipe = pipe_experiment(res.rig, pipe_scene(truth.rig, seed=args.seed), args.noise, args.seed, rig_cov=rig_cov)
+    names = [v.name for v in pipe["observations"].views]
+    views, circles = [p["points"] for p in pipe["poses"]], [p["circle"] for p in pipe["poses"]]
+    write_observations(out / "pipe_observations.json", pipe["observations"])
+    meta = {"pixel_sigma": args.noise, "summary": pipe["summary"]}
+    write_json_atomic(out / "pipe_points.json", points_document(names, views, circles, (0.0, 0.0, 1.0), meta))
+    plots = plot_pipe(pipe, out)
+    _pipe_report(pipe)
+    t_pipe = time.perf_counter() - t2
+    print(
+        f"timings: calibration {t_cal:.1f} s (compilation included), pipe {t_pipe:.1f} s, "
+        f"total {time.perf_counter() - t0:.1f} s"
+    )
+    files = ["observations.json", "truth.json", "calibration.json", "pipe_observations.json", "pipe_points.json"]
+    print(f"wrote {out}/ ({', '.join(files + [p.name for p in plots])})")
     return 0
 
 
@@ -252,6 +272,8 @@ def _print_points(names, views, circles) -> None:
         c = circles[k] if circles else None
         if c is not None:
             line += f"  diameter {c.diameter:.3f} +- {_fmt(c.diameter_std)} mm  fit rms {c.rms:.3f} mm"
+            if c.nearly_parallel_used:
+                line += f"  (fewer than 3 reliable points: {c.nearly_parallel_used} nearly parallel ones used)"
         print(line)
 
 
@@ -301,6 +323,10 @@ def _pipe_report(res, paper: bool = True) -> None:
         f"per-point fit error: mean {_fmt(s['fit_error_mean_mm'])} mm, max {_fmt(s['fit_error_max_mm'])} mm; "
         f"point error vs truth rms {_fmt(s['point_error_rms_mm'])} mm (reported std rms "
         f"{_fmt(s['point_std_rms_mm'])} mm, {s['nearly_parallel']} nearly parallel points left out)"
+    )
+    print(
+        f"the reflected rays meet the laser lines at a median {_fmt(s['median_ray_line_angle_deg'], 2)} deg: "
+        "the smaller the angle, the less a pixel says about the depth along the beam"
     )
     if paper:
         print("paper (Chen et al. 2019, real sensor): diameter 150.042 mm, fit errors < 3 mm, mean 1.5 mm")

@@ -8,7 +8,8 @@ def test_demo_runs_and_writes_its_folder(tmp_path, capsys):
     assert cli.main(["demo", "--views", "5", "--lasers", "4", "--out", str(tmp_path / "demo")]) == 0
     out = capsys.readouterr().out
     assert "camera" in out and "mirror" in out and "bound" in out
-    for name in ["observations.json", "truth.json", "calibration.json"]:
+    assert "mean diameter" in out
+    for name in ["observations.json", "truth.json", "calibration.json", "pipe_points.json", "pipe_circles.png"]:
         assert (tmp_path / "demo" / name).exists()
 
 
