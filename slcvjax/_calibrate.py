@@ -54,20 +54,23 @@ def _arrays(pk: Packed) -> Packed:
     return dataclasses.replace(pk, pose_keys=(), chess_keys=())
 
 
+def _per_observation(params: Params, pk: Packed) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per observation: its 2D residual norm (px), its kind and whether it is valid."""
+    rows = _rows(params, _arrays(pk))
+    n_obs = int(rows.obs.max()) + 1 if rows.r.size else 0
+    r2 = np.asarray(jax.ops.segment_sum(rows.r**2, rows.obs, num_segments=n_obs))
+    kind = np.asarray(jax.ops.segment_max(rows.kind, rows.obs, num_segments=n_obs))
+    ok = np.asarray(jax.ops.segment_min(rows.valid.astype(int), rows.obs, num_segments=n_obs)) > 0
+    return np.sqrt(r2), kind, ok
+
+
 def robust_sigma(params: Params, pk: Packed) -> float:
     """Noise sigma (px) from the median 2D residual norm of the dots, spots and corners."""
-    rows = _rows(params, _arrays(pk))
-    r2 = (
-        np.asarray(jax.ops.segment_sum(rows.r**2, rows.obs, num_segments=int(rows.obs.max()) + 1))
-        if rows.r.size
-        else np.zeros(0)
-    )
-    kind = np.asarray(jax.ops.segment_max(rows.kind, rows.obs, num_segments=r2.size))
-    ok = np.asarray(jax.ops.segment_min(rows.valid.astype(int), rows.obs, num_segments=r2.size)) > 0
+    norm, kind, ok = _per_observation(params, pk)
     sel = ok & (kind != 2)
     if not sel.any():
         return 1.0
-    return float(np.median(np.sqrt(r2[sel])) / RAYLEIGH_MEDIAN)
+    return float(np.median(norm[sel]) / RAYLEIGH_MEDIAN)
 
 
 @dataclass
@@ -325,11 +328,8 @@ def cramer_rao(truth: Calibration, obs: Observations, sigma: float) -> dict:
 def _obs_table(result: CalibrationResult):
     """Per observation: kind, 2D residual norm (px), validity, and its (view, board, laser) labels."""
     pk = result.packed
-    rows = _rows(result.params, _arrays(pk))
-    n_obs = int(rows.obs.max()) + 1 if rows.r.size else 0
-    r2 = np.asarray(jax.ops.segment_sum(rows.r**2, rows.obs, num_segments=n_obs))
-    kind = np.asarray(jax.ops.segment_max(rows.kind, rows.obs, num_segments=n_obs))
-    ok = np.asarray(jax.ops.segment_min(rows.valid.astype(int), rows.obs, num_segments=n_obs)) > 0
+    norm, kind, ok = _per_observation(result.params, pk)
+    n_obs = norm.size
     n_d, n_s, n_r = pk.dot_pose.shape[0], pk.spot_pose.shape[0], pk.rim_pixels.shape[0]
     view = np.full(n_obs, -1)
     board = np.full(n_obs, "", dtype=object)
@@ -342,7 +342,7 @@ def _obs_table(result: CalibrationResult):
         laser[n_d + j] = las
     for j, k in enumerate(np.asarray(pk.chess_pose)):
         view[n_d + n_s + n_r + j] = pk.chess_keys[k]
-    return np.sqrt(r2), kind, ok, view, board, laser
+    return norm, kind, ok, view, board, laser
 
 
 def _rms(x):

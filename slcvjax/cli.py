@@ -87,27 +87,20 @@ def _cmd_demo(args) -> int:
         f"{np.degrees(bound['direction_rms_rad']):.3f}     staged {rms(pos_s):.3f} {np.degrees(rms(ang_s)):.3f}"
     )
     print(f"[4/4] measure: the sensor in a 150 mm pipe at 16 poses, {args.noise:g} px, with this calibration")
-    from ._io import write_json_atomic
-    from ._pipe import measurement_inputs, pipe_experiment, pipe_scene, points_document
-    from ._plots import plot_pipe
+    from ._pipe import measurement_inputs, pipe_experiment, pipe_scene
 
     t2 = time.perf_counter()
     _, rig_cov = measurement_inputs("calibration.json", cal)
     pipe = pipe_experiment(res.rig, pipe_scene(truth.rig, seed=args.seed), args.noise, args.seed, rig_cov=rig_cov)
-    names = [v.name for v in pipe["observations"].views]
-    views, circles = [p["points"] for p in pipe["poses"]], [p["circle"] for p in pipe["poses"]]
-    write_observations(out / "pipe_observations.json", pipe["observations"])
-    meta = {"pixel_sigma": args.noise, "summary": pipe["summary"]}
-    write_json_atomic(out / "pipe_points.json", points_document(names, views, circles, (0.0, 0.0, 1.0), meta))
-    plots = plot_pipe(pipe, out)
+    pipe_files = _write_pipe(out, pipe, "pipe_points.json", args.noise)
     _pipe_report(pipe)
     t_pipe = time.perf_counter() - t2
     print(
         f"timings: calibration {t_cal:.1f} s (compilation included), pipe {t_pipe:.1f} s, "
         f"total {time.perf_counter() - t0:.1f} s"
     )
-    files = ["observations.json", "truth.json", "calibration.json", "pipe_observations.json", "pipe_points.json"]
-    print(f"wrote {out}/ ({', '.join(files + [p.name for p in plots])})")
+    files = ["observations.json", "truth.json", "calibration.json"] + pipe_files
+    print(f"wrote {out}/ ({', '.join(files)})")
     return 0
 
 
@@ -328,14 +321,34 @@ def _pipe_report(res, paper: bool = True) -> None:
         f"the reflected rays meet the laser lines at a median {_fmt(s['median_ray_line_angle_deg'], 2)} deg: "
         "the smaller the angle, the less a pixel says about the depth along the beam"
     )
+    if s["points"] and s["nearly_parallel"] > s["points"] // 2:
+        print(
+            f"warning: {s['nearly_parallel']} of {s['points']} points are nearly parallel to their rays given the "
+            "pixel noise and the calibration's laser directions; these diameters are not reliable (see their std)"
+        )
     if paper:
         print("paper (Chen et al. 2019, real sensor): diameter 150.042 mm, fit errors < 3 mm, mean 1.5 mm")
 
 
-def _cmd_pipe(args) -> int:
-    from ._io import read_calibration, write_json_atomic
-    from ._pipe import measurement_inputs, pipe_experiment, pipe_scene, points_document
+def _write_pipe(out: Path, res: dict, points_name: str, noise: float) -> list[str]:
+    """Write a pipe experiment's observations, points (``slcv-points/1``) and plots; their names."""
+    from ._io import write_json_atomic
+    from ._pipe import points_document
     from ._plots import plot_pipe
+
+    obs = res["observations"]
+    write_observations(out / "pipe_observations.json", obs)
+    names = [v.name for v in obs.views]
+    views, circles = [p["points"] for p in res["poses"]], [p["circle"] for p in res["poses"]]
+    meta = {"pixel_sigma": noise, "simulation": obs.extra["simulation"], "summary": res["summary"]}
+    write_json_atomic(out / points_name, points_document(names, views, circles, (0.0, 0.0, 1.0), meta))
+    plots = plot_pipe(res, out)
+    return ["pipe_observations.json", points_name] + [p.name for p in plots]
+
+
+def _cmd_pipe(args) -> int:
+    from ._io import read_calibration
+    from ._pipe import measurement_inputs, pipe_experiment, pipe_scene
     from ._simulate import paper_rig
 
     t0 = time.perf_counter()
@@ -353,20 +366,11 @@ def _cmd_pipe(args) -> int:
         print("measuring with the true paper rig (give --calibration to use a calibration)", flush=True)
     scene = pipe_scene(truth, args.diameter, args.poses, args.offset, args.tilt, seed=args.seed)
     res = pipe_experiment(rig, scene, args.noise, seed=args.seed, rig_cov=rig_cov)
-    obs = res["observations"]
-    from ._io import write_observations
-
-    write_observations(out / "pipe_observations.json", obs)
-    names = [v.name for v in obs.views]
-    views = [p["points"] for p in res["poses"]]
-    circles = [p["circle"] for p in res["poses"]]
-    meta = {"pixel_sigma": args.noise, "simulation": obs.extra["simulation"], "summary": res["summary"]}
-    write_json_atomic(out / "points.json", points_document(names, views, circles, (0.0, 0.0, 1.0), meta))
-    plots = plot_pipe(res, out)
-    _print_points(names, views, circles)
+    files = _write_pipe(out, res, "points.json", args.noise)
+    names = [v.name for v in res["observations"].views]
+    _print_points(names, [p["points"] for p in res["poses"]], [p["circle"] for p in res["poses"]])
     _pipe_report(res)
-    print(f"wrote {out}/ (pipe_observations.json, points.json, {', '.join(p.name for p in plots)}) "
-          f"in {time.perf_counter() - t0:.1f} s")  # fmt: skip
+    print(f"wrote {out}/ ({', '.join(files)}) in {time.perf_counter() - t0:.1f} s")
     return 0
 
 
