@@ -6,7 +6,7 @@ distortion), a 20 mm x 10 mm cone a few centimetres in front of the lens,
 slightly tilted (1.4 deg) and off-axis (0.7 mm), ten lasers on a ring beside
 the mirror aimed outwards and down (-27 deg) so that their spots are seen
 through the mirror both on the walls of a 350 mm box and inside a 150 mm pipe.
-The box walls carry 3x3 dot grids (30 mm pitch) where the mirror looks
+The box walls carry 3x3 dot grids (80 mm across by 30 mm down) where the mirror looks
 (elevations -37 to -14 deg as seen from the mirror); sixteen views move the
 sensor inside the box; twelve direct views of a 9x6, 25 mm chessboard serve the
 intrinsics; every view has rim edge pixels.  Only points that are really
