@@ -162,6 +162,8 @@ def measure_spots(
     """
     if not np.isfinite(pixel_sigma) or pixel_sigma < 0:
         raise ValueError(f"pixel sigma must be a non-negative number of pixels, got {pixel_sigma}")
+    if rig_cov is not None and rig_cov.shape != (rig.tangent_dim, rig.tangent_dim):
+        raise ValueError(f"rig covariance has shape {rig_cov.shape}, expected {(rig.tangent_dim,) * 2}")
     lasers = np.asarray(lasers, dtype=np.int64)
     pixels = np.asarray(pixels, dtype=float).reshape(-1, 2)
     view_of = np.asarray(view_of, dtype=np.int64)
@@ -172,8 +174,6 @@ def measure_spots(
     else:
         xyz, gap, angle, valid = np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros(0, bool)
         j_px, j_rig, ray_rate = np.zeros((0, 3, 2)), np.zeros((0, 3, rig.tangent_dim)), np.zeros(0)
-    if rig_cov is not None and rig_cov.shape != (rig.tangent_dim, rig.tangent_dim):
-        raise ValueError(f"rig covariance has shape {rig_cov.shape}, expected {(rig.tangent_dim,) * 2}")
     # the lasers' direction std (rad) from the calibration: their tilt block (e1, e2)
     n_las = rig.lasers.n
     dir_std = np.zeros(n_las)
