@@ -139,8 +139,8 @@ def calibrate(
         max_steps: the most LM linearisations per pass.
     """
     t0 = time.perf_counter()
-    pk = pack(obs)
-    st = staged(obs, camera=camera, pk=pk)
+    st = staged(obs, camera=camera, pk=pack(obs))
+    pk = st.packed  # spots without a board have one now
     t_staged = time.perf_counter() - t0
     if camera is not None and not st.chess_poses:
         st.chess_poses = {}

@@ -79,8 +79,8 @@ def pack(obs: Observations, use_views: bool = True, use_direct: bool = True) -> 
             dpts.append(obs.boards[b][seen])
             dpx.append(px[seen])
         for s in v.spots:
-            if s.board is None:
-                continue
+            if s.board is None or (vi, s.board) not in index:
+                continue  # no plane for it: no board, or a board with no dots (so no pose) in this view
             sp.append(key(vi, s.board))
             sl.append(s.laser)
             spx.append(s.pixel)

@@ -178,6 +178,28 @@ def _spots_all(rig: Rig, poses_R, poses_t):
     return jax.vmap(per_wall, in_axes=(0, 0, None, None))(rig.lasers.points, rig.lasers.directions, poses_R, poses_t)
 
 
+def visible_spots(scene: Scene, view: int) -> list[tuple[int, str, np.ndarray, np.ndarray]]:
+    """The laser spots of one catadioptric view: (laser, wall, 3D point in the camera frame, exact pixel).
+
+    A beam makes its spot on the first wall it meets; the spot is listed where it
+    is visible through the mirror.
+    """
+    rig = scene.rig
+    walls = [b for b in scene.boards if b != scene.chess_board]
+    poses = scene.box_poses[view]
+    rs = jnp.stack([poses[b].R for b in walls])
+    ts = jnp.stack([poses[b].t for b in walls])
+    lam, ok, uv, vis = (np.asarray(a) for a in _spots_all(rig, rs, ts))
+    pts, dirs = np.asarray(rig.lasers.points), np.asarray(rig.lasers.directions)
+    out = []
+    for laser in range(rig.lasers.n):
+        lam_l = np.where(ok[laser], lam[laser], np.inf)
+        w = int(np.argmin(lam_l))
+        if np.isfinite(lam_l[w]) and vis[laser, w]:
+            out.append((laser, walls[w], pts[laser] + lam_l[w] * dirs[laser], uv[laser, w]))
+    return out
+
+
 def simulate(scene: Scene, noise: float = 0.0, seed: int = 0) -> tuple[Observations, Calibration]:
     """Observations of a scene with Gaussian pixel noise ``noise`` (px), and the truth.
 
@@ -206,15 +228,7 @@ def simulate(scene: Scene, noise: float = 0.0, seed: int = 0) -> tuple[Observati
         for b in walls:
             uv, ok = _proj_points(rig, poses[b], jnp.asarray(scene.boards[b]))
             per_board[b] = (noisy(uv), np.asarray(ok))
-        rs = jnp.stack([poses[b].R for b in walls])
-        ts = jnp.stack([poses[b].t for b in walls])
-        lam, ok, uv, vis = (np.asarray(a) for a in _spots_all(rig, rs, ts))
-        spots = []
-        for laser in range(rig.lasers.n):
-            lam_l = np.where(ok[laser], lam[laser], np.inf)
-            w = int(np.argmin(lam_l))
-            if np.isfinite(lam_l[w]) and vis[laser, w]:
-                spots.append(SpotObs(laser, walls[w], noisy(uv[laser, w])))
+        spots = [SpotObs(laser, wall, noisy(uv)) for laser, wall, _, uv in visible_spots(scene, i)]
         angles = np.sort(rng.uniform(0, 2 * np.pi, scene.rim_points_per_view))
         ruv, rok = _proj_rim(rig, jnp.asarray(angles))
         rim = noisy(np.asarray(ruv)[np.asarray(rok)])

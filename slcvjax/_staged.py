@@ -13,6 +13,7 @@
    point; a least-squares 3D line per laser.
 """
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import cv2
@@ -22,7 +23,7 @@ import numpy as np
 import optimistix as optx
 
 from ._camera import Camera, undistort
-from ._io import Observations
+from ._io import Observations, SpotObs, ViewObs
 from ._lasers import Lasers
 from ._mirror import ConeMirror, back_project
 from ._pose import Pose, so3_exp
@@ -389,6 +390,7 @@ class Staged:
     poses: list[Pose]
     chess_poses: dict[int, Pose]
     reports: list[StageReport]
+    packed: Packed | None = None
 
 
 def staged(obs: Observations, camera: Camera | None = None, pk: Packed | None = None) -> Staged:
@@ -413,5 +415,49 @@ def staged(obs: Observations, camera: Camera | None = None, pk: Packed | None = 
     mirror, poses, rep_p, chosen = best
     if len(mirrors) > 1:
         rep_m.notes.append(f"two-fold ambiguity resolved by the boards' fit: candidate {chosen + 1} kept")
+    n_open = sum(s.board is None for v in obs.views for s in v.spots)
+    if n_open:
+        obs, n_set = assign_spot_boards(obs, camera, mirror, pk, poses)
+        pk = pack(obs)
+        rep_p.notes.append(f"{n_set} of {n_open} spots without a board put on the first board plane their ray meets")
     lasers, rep_l = fit_lasers(camera, mirror, pk, poses, obs.n_lasers)
-    return Staged(camera, mirror, lasers, poses, chess, reports + [rep_m, rep_p, rep_l])
+    return Staged(camera, mirror, lasers, poses, chess, reports + [rep_m, rep_p, rep_l], pk)
+
+
+def assign_spot_boards(
+    obs: Observations, camera: Camera, mirror: ConeMirror, pk: Packed, poses: list[Pose]
+) -> tuple[Observations, int]:
+    """Give each spot that names no board the board whose plane its reflected ray meets first.
+
+    The camera sees the first surface along the reflected ray, so of the boards
+    with a pose in that view, the nearest plane ahead of the mirror is the one the
+    spot lies on (this settles spots near the corner of two walls, which the image
+    alone cannot).  That holds only where every board has a pose in the view; a
+    spot in a view where some board is missing keeps no board (and is not used).
+    Returns new observations and how many spots got a board.
+    """
+    index = {k: i for i, k in enumerate(pk.pose_keys)}
+    walls = {b for _, b in pk.pose_keys}
+    views, n_set = [], 0
+    for vi, v in enumerate(obs.views):
+        spots = []
+        cands = [(b, poses[index[(vi, b)]]) for b in sorted(walls) if (vi, b) in index]
+        for s in v.spots:
+            # only where every wall has a pose here: otherwise the first plane met may not be the right one
+            if s.board is None and cands and len(cands) == len(walls):
+                ray = _back_many(camera, mirror, jnp.asarray(s.pixel, dtype=float)[None])
+                org, d = np.asarray(ray.point)[0], np.asarray(ray.direction)[0]
+                best, lam_best = None, np.inf
+                for b, pose in cands:
+                    n, t = np.asarray(pose.R[:, 2]), np.asarray(pose.t)
+                    den = n @ d
+                    if abs(den) > 1e-9 and bool(np.asarray(ray.valid)[0]):
+                        lam = n @ (t - org) / den
+                        if 0 < lam < lam_best:
+                            best, lam_best = b, lam
+                if best is not None:
+                    s = SpotObs(s.laser, best, s.pixel)
+                    n_set += 1
+            spots.append(s)
+        views.append(ViewObs(v.name, v.boards, spots, v.rim))
+    return dataclasses.replace(obs, views=views), n_set
