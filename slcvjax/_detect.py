@@ -297,13 +297,21 @@ def find_dots(green: np.ndarray, disc: MirrorDisc, edge: int = 4) -> np.ndarray:
 
 
 def find_spots(bgr: np.ndarray, disc: MirrorDisc, threshold: float = 25.0) -> np.ndarray:
-    """Laser spots inside the mirror's disc: (S, 2) redness-weighted centroids (red minus green, grey levels)."""
+    """Laser spots inside the mirror's disc: (S, 2) centroids.
+
+    Found where red minus green exceeds ``threshold`` grey levels; located by the
+    centroid of red / green - 1, the laser's light relative to the scene's.  That
+    ratio does not depend on the paper's albedo, so a spot partly on a dark dot
+    keeps its centre (a red-minus-green weight would be pulled off it).
+    """
     red = bgr[:, :, 2].astype(float) - bgr[:, :, 1].astype(float)
     red = cv2.GaussianBlur(red, (0, 0), 0.7)
     mask = ((red > threshold) & disc.mask).astype(np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    green = bgr[:, :, 1].astype(float)
     ids = [k for k in range(1, n) if stats[k, cv2.CC_STAT_AREA] >= 2]
-    raw = bgr[:, :, 2].astype(float) - bgr[:, :, 1].astype(float)
+    # red over green cancels the paper's albedo (a spot half on a dark dot keeps its centre)
+    raw = bgr[:, :, 2].astype(float) / np.maximum(green, 4.0) - 1.0
     return _weighted_centroids(raw, labels, ids)
 
 
@@ -323,7 +331,7 @@ def _order_grid(
     layout: BoardLayout,
     disc_radius: float | None = None,
     dead_zone: float = 0.3,
-    rim_margin: float = 12.0,
+    rim_margin: float = 25.0,
     assumed: list | None = None,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """Place one board's dots on its grid: (pixels (M, 2), seen (M,)), or None when that needs a guess.

@@ -43,6 +43,49 @@ def _cmd_simulate(args) -> int:
     write_calibration(out / "truth.json", truth)
     print(_summary(obs, truth))
     print(f"wrote {out / 'observations.json'} and {out / 'truth.json'} ({time.perf_counter() - t0:.1f} s)")
+    if args.render:
+        from ._render import RenderOptions, render_scene
+
+        opts = RenderOptions(noise=args.image_noise, blur=args.blur, exposure=args.exposure, seed=args.seed)
+        t1 = time.perf_counter()
+        files = render_scene(scene, out / "images", opts, progress=sys.stderr.isatty())
+        print(f"wrote {len(files)} images and {out / 'images' / 'setup.json'} ({time.perf_counter() - t1:.1f} s)")
+    return 0
+
+
+def _read_inputs(inputs: list[Path], progress: bool = True):
+    """Each input as observations: a ``slcv-observations/1`` file, or an image folder (detected here)."""
+    from ._detect import detect_folder
+    from ._io import read_observations
+
+    out = []
+    for p in inputs:
+        if p.is_dir():
+            obs, rep = detect_folder(p, progress=progress and sys.stderr.isatty())
+            bad = {k: v for k, v in rep.problems.items() if v}
+            print(f"{p}: detected {len(obs.views)} catadioptric and {len(obs.calibration_views)} chessboard images"
+                  f" ({len(bad)} with something not found; `slcvjax detect` lists them)")  # fmt: skip
+            out.append(obs)
+        else:
+            out.append(read_observations(p))
+    return out
+
+
+def _cmd_detect(args) -> int:
+    from ._detect import detect_folder
+
+    t0 = time.perf_counter()
+    obs, rep = detect_folder(args.folder, progress=sys.stderr.isatty())
+    for line in rep.lines():
+        print(line)
+    write_observations(args.out, obs)
+    n_dots = sum(int(s.sum()) for v in obs.views for _, s in v.boards.values())
+    n_spots = sum(len(v.spots) for v in obs.views)
+    n_corners = sum(int(c.seen.sum()) for c in obs.calibration_views)
+    print(
+        f"{n_dots} dots, {n_spots} spots, {sum(len(v.rim) for v in obs.views)} rim pixels, {n_corners} corners; "
+        f"wrote {args.out} ({time.perf_counter() - t0:.1f} s)"
+    )
     return 0
 
 
@@ -145,11 +188,11 @@ def print_report(cal, name: str = "") -> None:
 
 def _cmd_calibrate(args) -> int:
     from ._calibrate import calibrate, to_calibration
-    from ._io import read_calibration, read_observations
+    from ._io import read_calibration
     from ._staged import CalibrationError
 
     inputs = [Path(p) for p in args.inputs]
-    observations = [read_observations(p) for p in inputs]  # all validated before any work
+    observations = _read_inputs(inputs)  # all read (and image folders detected) before any calibration
     camera = read_calibration(args.camera).rig.camera if args.camera else None
     freeze = tuple(f for f in (args.freeze or "").split(",") if f)
     results = []
@@ -385,10 +428,19 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--lasers", type=int, default=10, help="number of lasers (default 10)")
     s.add_argument("--views", type=int, default=16, help="number of catadioptric views (default 16)")
     s.add_argument("--out", required=True, help="output directory")
+    s.add_argument("--render", action="store_true", help="also render DIR/images/ (PNG per view) and setup.json")
+    s.add_argument("--image-noise", type=float, default=1.0, help="sensor noise of rendered images, grey levels")
+    s.add_argument("--blur", type=float, default=0.6, help="optical blur of rendered images, px (default 0.6)")
+    s.add_argument("--exposure", type=float, default=1.0, help="exposure gain of rendered images (default 1)")
     s.set_defaults(func=_cmd_simulate)
 
-    c = sub.add_parser("calibrate", help="calibrate the rig from slcv-observations/1 files")
-    c.add_argument("inputs", nargs="+", help="observation file(s)")
+    t = sub.add_parser("detect", help="detect spots, dots, rim and corners in an image folder (with setup.json)")
+    t.add_argument("folder", help="image folder holding setup.json (slcv-setup/1)")
+    t.add_argument("--out", required=True, help="output slcv-observations/1 file")
+    t.set_defaults(func=_cmd_detect)
+
+    c = sub.add_parser("calibrate", help="calibrate the rig from observation files or image folders")
+    c.add_argument("inputs", nargs="+", help="slcv-observations/1 file(s) or image folder(s) with setup.json")
     c.add_argument("--out", required=True, help="output file (one input) or directory (several)")
     c.add_argument("--camera", help="a slcv-calibration/1 file whose camera starts the calibration")
     c.add_argument("--freeze", help="comma-separated blocks to hold fixed: camera, mirror, lasers, poses, chess_poses")

@@ -1,0 +1,174 @@
+"""Rendered images against the simulator's truth: detection accuracy and labels, calibration from images, bad images."""
+
+import json
+import shutil
+
+import cv2
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from slcvjax._calibrate import calibrate, cramer_rao, laser_errors
+from slcvjax._detect import detect_folder, read_setup
+from slcvjax._io import FormatError
+from slcvjax._render import RenderOptions, render_scene
+from slcvjax._rig import project_rim
+from slcvjax._simulate import make_scene, simulate
+from slcvjax.cli import main
+
+NOISE_FREE = RenderOptions(noise=0.0)
+
+
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory):
+    """The paper preset rendered without sensor noise, detected, with the exact observations."""
+    scene = make_scene("paper")
+    folder = tmp_path_factory.mktemp("render") / "images"
+    render_scene(scene, folder, NOISE_FREE)
+    exact, truth = simulate(scene)
+    obs, report = detect_folder(folder)
+    return scene, folder, exact, truth, obs, report
+
+
+def _row_shift_assumed(report, view, board):
+    return any(board in p and "row shift assumed" in p for p in report.problems.get(view, []))
+
+
+def test_dots_are_accurate_and_placed_on_their_grid(rendered):
+    _, _, exact, _, obs, report = rendered
+    errors, boards, shifted = [], 0, 0
+    for vd, vt in zip(obs.views, exact.views, strict=True):
+        for b, (px_t, seen_t) in vt.boards.items():
+            px_d, seen_d = vd.boards[b]
+            if not seen_d.any():
+                continue
+            boards += 1
+            idx = np.flatnonzero(seen_d)
+            exact_fit = seen_t[idx].all() and np.all(np.linalg.norm(px_d[idx] - px_t[idx], axis=1) < 1.0)
+            if exact_fit:
+                errors.extend(np.linalg.norm(px_d[idx] - px_t[idx], axis=1))
+                continue
+            # only a board reported as "row shift assumed" may be off, and then by exactly one grid row
+            assert _row_shift_assumed(report, vd.name, b), (vd.name, b)
+            cols = 3
+            ok = any(
+                (idx + s).min() >= 0
+                and (idx + s).max() < len(seen_t)
+                and seen_t[idx + s].all()
+                and np.all(np.linalg.norm(px_d[idx] - px_t[idx + s], axis=1) < 1.0)
+                for s in (cols, -cols)
+            )
+            assert ok, (vd.name, b)
+            shifted += 1
+    errors = np.array(errors)
+    assert boards >= 32  # half the 64 wall images at least
+    assert shifted <= boards // 4
+    assert np.sqrt(np.mean(errors**2)) < 0.1
+    assert errors.max() < 0.5
+
+
+def test_spots_are_accurate_labelled_and_almost_all_found(rendered):
+    _, _, exact, _, obs, _ = rendered
+    errors, n_true, wrong_board = [], 0, 0
+    for vd, vt in zip(obs.views, exact.views, strict=True):
+        truth = {s.laser: s for s in vt.spots}
+        n_true += len(truth)
+        assert len({s.laser for s in vd.spots}) == len(vd.spots)
+        for s in vd.spots:
+            t = truth[s.laser]
+            errors.append(np.linalg.norm(s.pixel - t.pixel))
+            wrong_board += s.board is not None and s.board != t.board
+    errors = np.array(errors)
+    assert errors.max() < 1.0  # every spot carries its own laser's label
+    assert np.sqrt(np.mean(errors**2)) < 0.1
+    assert len(errors) >= 0.98 * n_true
+    assert wrong_board == 0
+
+
+def test_rim_pixels_lie_on_the_true_rim(rendered):
+    _, _, _, truth, obs, _ = rendered
+    uv, ok = project_rim(truth.rig, jnp.linspace(0, 2 * np.pi, 20000, endpoint=False))
+    curve = np.asarray(uv)[np.asarray(ok)]
+    d = []
+    for v in obs.views:
+        assert len(v.rim) > 150
+        d.extend(np.min(np.linalg.norm(v.rim[:, None] - curve[None], axis=2), axis=1))
+    # measured 0.21 px on this preset: the half-level crossing sees a partly dotted wall inside the edge
+    assert np.sqrt(np.mean(np.square(d))) < 0.3
+
+
+def test_chessboard_corners_match_the_truth(rendered):
+    _, _, exact, _, obs, _ = rendered
+    assert len(obs.calibration_views) == len(exact.calibration_views)
+    errs = []
+    for cd, ct in zip(obs.calibration_views, exact.calibration_views, strict=True):
+        e1 = np.linalg.norm(cd.pixels - ct.pixels, axis=1)
+        e2 = np.linalg.norm(cd.pixels[::-1] - ct.pixels, axis=1)  # the board's 180 deg twin: the same grid
+        errs.extend(e1 if e1.mean() < e2.mean() else e2)
+    assert np.sqrt(np.mean(np.square(errs))) < 0.1
+
+
+def test_calibration_from_images_is_near_the_bound(rendered):
+    _, _, exact, truth, obs, _ = rendered
+    res = calibrate(obs)
+    assert all(p.result.startswith("converged") for p in res.passes)
+    # the detection's own error, measured against the truth, sets the pixel noise of the bound
+    e = []
+    for vd, vt in zip(obs.views, exact.views, strict=True):
+        t = {s.laser: s.pixel for s in vt.spots}
+        e.extend(np.linalg.norm(s.pixel - t[s.laser]) for s in vd.spots)
+    sigma = float(np.sqrt(np.mean(np.square(e)) / 2))
+    bound = cramer_rao(truth, exact, sigma)
+    pos, ang = laser_errors(res.rig, truth.rig, bound["x_ref"])
+    ratio_pos = np.sqrt(np.mean(pos**2)) / bound["position_rms_mm"]
+    ratio_ang = np.sqrt(np.mean(ang**2)) / bound["direction_rms_rad"]
+    print(f"images: laser error / bound (exact file's views, sigma {sigma:.3f} px): {ratio_pos:.2f} {ratio_ang:.2f}")
+    # the detected views hold about half the exact file's dots, and detection errors are partly systematic
+    assert ratio_pos < 4.0
+    assert ratio_ang < 4.0
+
+
+def _copy(rendered, tmp_path):
+    dst = tmp_path / "images"
+    shutil.copytree(rendered[1], dst)
+    return dst
+
+
+def test_black_image_is_named(rendered, tmp_path, capsys):
+    folder = _copy(rendered, tmp_path)
+    cv2.imwrite(str(folder / "view03.png"), np.zeros((480, 640, 3), np.uint8))
+    assert main(["detect", str(folder), "--out", str(tmp_path / "o.json")]) == 2
+    err = capsys.readouterr().err
+    assert "view03.png" in err and "blank" in err
+    assert not (tmp_path / "o.json").exists()
+
+
+def test_truncated_image_is_named(rendered, tmp_path):
+    folder = _copy(rendered, tmp_path)
+    data = (folder / "view01.png").read_bytes()
+    (folder / "view01.png").write_bytes(data[:200])
+    with pytest.raises(FormatError, match=r"view01\.png"):
+        detect_folder(folder)
+
+
+def test_wrong_size_image_is_named(rendered, tmp_path):
+    folder = _copy(rendered, tmp_path)
+    cv2.imwrite(str(folder / "chess02.png"), np.full((240, 320, 3), 128, np.uint8))
+    with pytest.raises(FormatError, match=r"chess02\.png.*320x240"):
+        detect_folder(folder)
+
+
+def test_image_missing_from_the_folder_is_named(rendered, tmp_path):
+    folder = _copy(rendered, tmp_path)
+    (folder / "view05.png").unlink()
+    with pytest.raises(FormatError, match=r"view05\.png.*no such image"):
+        detect_folder(folder)
+
+
+def test_bad_setup_is_named(rendered, tmp_path):
+    folder = _copy(rendered, tmp_path)
+    doc = json.loads((folder / "setup.json").read_text())
+    doc["boards"]["wall1"]["cols"] = 4
+    (folder / "setup.json").write_text(json.dumps(doc))
+    with pytest.raises(FormatError, match=r"setup\.json: boards\.wall1\.points"):
+        read_setup(folder / "setup.json")
