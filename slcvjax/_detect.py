@@ -33,7 +33,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ._io import CalibrationViewObs, FormatError, Observations, SpotObs, ViewObs, _load_json
+from ._io import CalibrationViewObs, FormatError, Observations, SpotObs, ViewObs, _load_json, read_sensor_fields
 
 SETUP_FORMAT = "slcv-setup/1"
 
@@ -105,17 +105,7 @@ def read_setup(path: str | Path) -> Setup:
     fmt = ctx.get(doc, "format", "", str)
     if fmt != SETUP_FORMAT:
         ctx.fail("format", f"expected {SETUP_FORMAT!r}, got {fmt!r}")
-    size = ctx.get(doc, "image_size", "", list)
-    if len(size) != 2:
-        ctx.fail("image_size", f"expected [width, height], got {len(size)} values")
-    w = ctx.integer(size[0], "image_size[0]", lo=1)
-    h = ctx.integer(size[1], "image_size[1]", lo=1)
-    shape = ctx.get(doc, "mirror_shape", "", dict)
-    if ctx.get(shape, "kind", "mirror_shape", str) != "cone":
-        ctx.fail("mirror_shape.kind", "only 'cone' is supported")
-    radius = ctx.positive(ctx.get(shape, "radius", "mirror_shape"), "mirror_shape.radius")
-    height = ctx.positive(ctx.get(shape, "height", "mirror_shape"), "mirror_shape.height")
-    n_lasers = ctx.integer(ctx.get(doc, "n_lasers", ""), "n_lasers", lo=0)
+    (w, h), radius, height, n_lasers = read_sensor_fields(ctx, doc)
     az = ctx.get(doc, "laser_azimuth_deg", "", list, optional=True)
     laser_az = None
     if az is not None:

@@ -192,13 +192,8 @@ def _pixels(ctx: _Ctx, val: Any, n: int, where: str) -> tuple[np.ndarray, np.nda
     return px, seen
 
 
-def read_observations(path: str | os.PathLike) -> Observations:
-    """Read and validate a ``slcv-observations/1`` file (raises :class:`FormatError`)."""
-    ctx, doc = _load_json(path)
-    _check_format(ctx, doc, OBSERVATIONS_FORMAT)
-    units = ctx.get(doc, "units", "", str, optional=True)
-    if units is not None and units != "mm":
-        ctx.fail("units", f"expected 'mm', got {units!r}")
+def read_sensor_fields(ctx: _Ctx, doc: Any) -> tuple[tuple[int, int], float, float, int]:
+    """``image_size``, ``mirror_shape`` (radius, height) and ``n_lasers``, shared by the input formats."""
     size = ctx.get(doc, "image_size", "", list)
     if len(size) != 2:
         ctx.fail("image_size", f"expected [width, height], got {len(size)} values")
@@ -211,6 +206,17 @@ def read_observations(path: str | os.PathLike) -> Observations:
     radius = ctx.positive(ctx.get(shape, "radius", "mirror_shape"), "mirror_shape.radius")
     height = ctx.positive(ctx.get(shape, "height", "mirror_shape"), "mirror_shape.height")
     n_lasers = ctx.integer(ctx.get(doc, "n_lasers", ""), "n_lasers", lo=0)
+    return (w, h), radius, height, n_lasers
+
+
+def read_observations(path: str | os.PathLike) -> Observations:
+    """Read and validate a ``slcv-observations/1`` file (raises :class:`FormatError`)."""
+    ctx, doc = _load_json(path)
+    _check_format(ctx, doc, OBSERVATIONS_FORMAT)
+    units = ctx.get(doc, "units", "", str, optional=True)
+    if units is not None and units != "mm":
+        ctx.fail("units", f"expected 'mm', got {units!r}")
+    (w, h), radius, height, n_lasers = read_sensor_fields(ctx, doc)
 
     boards_doc = ctx.get(doc, "boards", "", dict)
     boards: dict[str, np.ndarray] = {}
