@@ -322,9 +322,8 @@ def _order_grid(
     disc_radius: float | None = None,
     dead_zone: float = 0.3,
     rim_margin: float = 25.0,
-    assumed: list | None = None,
-) -> tuple[np.ndarray, np.ndarray] | None:
-    """Place one board's dots on its grid: (pixels (M, 2), seen (M,)), or None when that needs a guess.
+) -> tuple[np.ndarray, np.ndarray, bool] | None:
+    """Place one board's dots on its grid: (pixels (M, 2), seen (M,), row shift assumed?), or None.
 
     Through a cone mirror a wall's columns (lines across the axis's direction)
     image as nearly radial lines, so the dots are split into ``cols`` azimuth
@@ -339,7 +338,7 @@ def _order_grid(
     placed.
     """
     cols, rows = layout.cols, layout.rows
-    assumed = [False] if assumed is None else assumed
+    assumed = False
     if len(px) < cols or len(px) > cols * rows:
         return None
     a = _wrap(azimuth_deg(px, centre) - _circular_mean_deg(azimuth_deg(px, centre)))
@@ -377,7 +376,7 @@ def _order_grid(
             # by one row, which moves the board's frame within its plane: the plane, and so the spots'
             # geometry and the rig's calibration, are the same.  The board is reported as assumed.
             hidden_out = False
-            assumed[0] = True
+            assumed = True
         # grid row 0 comes first in the columns' order: it is the inner row when y grows outwards
         first = 1 if hidden_in == (layout.y_dir > 0) else 0
     col_az = np.array([np.mean(a[g]) for g in groups])
@@ -405,7 +404,7 @@ def _order_grid(
         for i, j in zip(g, rows_of, strict=True):
             out[j * cols + k] = px[i]
             seen[j * cols + k] = True
-    return out, seen
+    return out, seen, assumed
 
 
 def _split_by_azimuth(az: np.ndarray, k: int) -> list[np.ndarray]:
@@ -460,7 +459,6 @@ def label_boards(det: ImageDetection, setup: Setup) -> tuple[dict[str, tuple[np.
     means = [_circular_mean_deg(az[g]) for g in groups]
     assign = [int(np.argmin(np.abs(_wrap(m - nominal)))) for m in means]
     used: dict[int, int] = {}
-    pending = []
     for gi, j in enumerate(assign):
         name = names[j]
         d = abs(float(_wrap(means[gi] - nominal[j])))
@@ -468,19 +466,16 @@ def label_boards(det: ImageDetection, setup: Setup) -> tuple[dict[str, tuple[np.
             problems.append(f"{len(groups[gi])} dots near azimuth {means[gi] % 360:.0f} deg match no single target")
             continue
         used[j] = gi
-        pending.append((name, gi))
-    for name, gi in pending:
-        layout = walls[name]
-        flag = [False]
-        got = _order_grid(det.dots[groups[gi]], det.disc.centre, layout, float(np.mean(det.disc.axes)), assumed=flag)
+        got = _order_grid(det.dots[groups[gi]], det.disc.centre, walls[name], float(np.mean(det.disc.axes)))
         if got is None:
             problems.append(f"{name}: {len(groups[gi])} dots could not be placed on the grid; board left out")
             continue
-        out[name] = got
-        if flag[0]:
+        px, seen, shifted = got
+        out[name] = (px, seen)
+        if shifted:
             problems.append(f"{name}: a whole row is hidden; taken as the one nearest the apex (row shift assumed)")
-        if not got[1].all():
-            problems.append(f"{name}: {int(got[1].sum())} of {len(got[1])} dots found")
+        if not seen.all():
+            problems.append(f"{name}: {int(seen.sum())} of {len(seen)} dots found")
     for j, name in enumerate(names):
         if j not in used and not any(name in p for p in problems):
             problems.append(f"{name}: not found")

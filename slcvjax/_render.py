@@ -14,7 +14,7 @@ Gaussian sensor noise and 8-bit quantisation are applied.
 
 Radiances are linear in [0, 1]; the laser is pure red (650 nm light does not reach
 the green and blue channels), so the detector finds dots in green and spots in
-red minus green.  Images are BGR ``uint8`` arrays, OpenCV's layout.
+red against green.  Images are BGR ``uint8`` arrays, OpenCV's layout.
 """
 
 from dataclasses import dataclass
@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._camera import Camera, pixel_to_ray
+from ._lasers import line_plane_intersection
 from ._mirror import ConeMirror, back_project
 from ._pose import Pose
 
@@ -82,25 +83,26 @@ class RenderOptions:
                 raise ValueError(f"render option {name} has an invalid value {getattr(self, name)!r}")
 
 
-def _sample_grid(width: int, height: int, rows: slice, ss: int) -> jnp.ndarray:
-    """Sub-pixel sample positions (OpenCV pixel centres at integers) of a band of rows, (h, w, ss*ss, 2)."""
+def _sample_grid(width: int, height: int, ss: int) -> jnp.ndarray:
+    """Sub-pixel sample positions (OpenCV pixel centres at integers) of an image, (h, w, ss*ss, 2)."""
     off = (np.arange(ss) + 0.5) / ss - 0.5
-    v = np.arange(rows.start, rows.stop)[:, None, None] + np.repeat(off, ss)[None, None, :]
+    v = np.arange(height)[:, None, None] + np.repeat(off, ss)[None, None, :]
     u = np.arange(width)[None, :, None] + np.tile(off, ss)[None, None, :]
     u, v = np.broadcast_arrays(u, v)
     return jnp.asarray(np.stack([u, v], axis=-1), dtype=float)
 
 
 def _wall_hit(origin, direction, walls_R, walls_t):
-    """Nearest wall hit by a ray: (index, distance, board-frame xy, camera-frame point, hit?)."""
-    n = walls_R[:, :, 2]  # (W, 3)
-    denom = n @ direction
-    lam = jnp.sum(n * (walls_t - origin), axis=1) / jnp.where(jnp.abs(denom) > 1e-12, denom, 1e-12)
-    lam = jnp.where((jnp.abs(denom) > 1e-12) & (lam > 1e-6), lam, jnp.inf)
+    """Nearest wall ahead of a ray: (wall index, hit?, board-frame xy, camera-frame point)."""
+
+    def one(R, t):
+        x, ok = line_plane_intersection(origin, direction, Pose(R, t))
+        return x, jnp.where(ok, jnp.dot(x - origin, direction), jnp.inf)
+
+    xs, lam = jax.vmap(one)(walls_R, walls_t)
     w = jnp.argmin(lam)
-    t = lam[w]
-    hit = jnp.isfinite(t)
-    x = origin + jnp.where(hit, t, 0.0) * direction
+    hit = jnp.isfinite(lam[w])
+    x = xs[w]
     local = walls_R[w].T @ (x - walls_t[w])
     return w, hit, local[:2], x
 
@@ -139,10 +141,8 @@ def _cata_shade(origin, direction, valid, seen, walls_R, walls_t, dots, spots, s
 
 
 def _chess_sample(d, ok, R, t, cols, rows, square):
-    n = R[:, 2]
-    denom = jnp.dot(n, d)
-    lam = jnp.dot(n, t) / jnp.where(jnp.abs(denom) > 1e-12, denom, 1e-12)
-    xy = (R.T @ (lam * d - t))[:2]
+    x, ahead = line_plane_intersection(jnp.zeros(3), d, Pose(R, t))
+    xy = (R.T @ (x - t))[:2]
     i = jnp.floor(xy[0] / square)
     j = jnp.floor(xy[1] / square)
     inside = (xy[0] >= -square) & (xy[0] < cols * square) & (xy[1] >= -square) & (xy[1] < rows * square)
@@ -150,7 +150,7 @@ def _chess_sample(d, ok, R, t, cols, rows, square):
     margin = margin & (xy[1] < (rows + 1) * square)
     black = jnp.mod(i + j, 2) == 0
     val = jnp.where(inside, jnp.where(black, CHESS_BLACK, CHESS_WHITE), jnp.where(margin, CHESS_WHITE, CHESS_SURROUND))
-    val = jnp.where(ok & (lam > 0), val, CHESS_SURROUND)
+    val = jnp.where(ok & ahead, val, CHESS_SURROUND)
     return jnp.stack([val, val, val])
 
 
@@ -182,7 +182,7 @@ CHUNK = 32768
 
 def _chunked_samples(width: int, height: int, ss: int) -> tuple[jnp.ndarray, int]:
     """Every sample of an image, padded and split into chunks: (n_chunks, CHUNK, 2), and the true count."""
-    samples = _sample_grid(width, height, slice(0, height), ss).reshape(-1, 2)
+    samples = _sample_grid(width, height, ss).reshape(-1, 2)
     n = samples.shape[0]
     pad = (-n) % CHUNK
     samples = jnp.concatenate([samples, jnp.zeros((pad, 2))]) if pad else samples
@@ -288,7 +288,7 @@ def scene_setup(scene, image_names: list[str], chess_names: list[str]):
     the box's drawing); the lasers are numbered by the detector's convention
     (by increasing azimuth from the one nearest 0 deg), which the presets follow.
     """
-    from ._detect import BoardLayout, Setup, azimuth_deg
+    from ._detect import BoardLayout, Setup, _circular_mean_deg, azimuth_deg
     from ._rig import project_board_points, project_rim
 
     rig = scene.rig
@@ -303,7 +303,7 @@ def scene_setup(scene, image_names: list[str], chess_names: list[str]):
             uv, ok = np.asarray(uv), np.asarray(ok)
             if ok.any():
                 az = azimuth_deg(uv[ok], centre)
-                layout.azimuth_deg = float(np.degrees(np.angle(np.exp(1j * np.radians(az)).mean())) % 360)
+                layout.azimuth_deg = _circular_mean_deg(az) % 360
             grid_uv = uv.reshape(rows, cols, 2)
             if cols > 1:
                 d = (azimuth_deg(grid_uv[:, 1], centre) - azimuth_deg(grid_uv[:, 0], centre) + 180) % 360 - 180

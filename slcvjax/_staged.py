@@ -438,26 +438,32 @@ def assign_spot_boards(
     """
     index = {k: i for i, k in enumerate(pk.pose_keys)}
     walls = {b for _, b in pk.pose_keys}
-    views, n_set = [], 0
+    open_px = [s.pixel for v in obs.views for s in v.spots if s.board is None]
+    rays = _back_many(camera, mirror, jnp.asarray(np.reshape(open_px, (-1, 2)), dtype=float))
+    orgs, dirs, oks = (np.asarray(a) for a in (rays.point, rays.direction, rays.valid))
+    views, n_set, k = [], 0, 0
     for vi, v in enumerate(obs.views):
         spots = []
         cands = [(b, poses[index[(vi, b)]]) for b in sorted(walls) if (vi, b) in index]
         for s in v.spots:
+            if s.board is not None:
+                spots.append(s)
+                continue
+            org, d, ok = orgs[k], dirs[k], oks[k]
+            k += 1
+            best, lam_best = None, np.inf
             # only where every wall has a pose here: otherwise the first plane met may not be the right one
-            if s.board is None and cands and len(cands) == len(walls):
-                ray = _back_many(camera, mirror, jnp.asarray(s.pixel, dtype=float)[None])
-                org, d = np.asarray(ray.point)[0], np.asarray(ray.direction)[0]
-                best, lam_best = None, np.inf
+            if ok and len(cands) == len(walls):
                 for b, pose in cands:
                     n, t = np.asarray(pose.R[:, 2]), np.asarray(pose.t)
                     den = n @ d
-                    if abs(den) > 1e-9 and bool(np.asarray(ray.valid)[0]):
+                    if abs(den) > 1e-9:
                         lam = n @ (t - org) / den
                         if 0 < lam < lam_best:
                             best, lam_best = b, lam
-                if best is not None:
-                    s = SpotObs(s.laser, best, s.pixel)
-                    n_set += 1
+            if best is not None:
+                s = SpotObs(s.laser, best, s.pixel)
+                n_set += 1
             spots.append(s)
         views.append(ViewObs(v.name, v.boards, spots, v.rim))
     return dataclasses.replace(obs, views=views), n_set
