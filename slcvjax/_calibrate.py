@@ -292,7 +292,8 @@ def laser_errors(est: Rig, truth: Rig, x_ref: np.ndarray) -> tuple[np.ndarray, n
     v = x_ref - p
     pos = np.linalg.norm(v - np.sum(v * d, axis=1, keepdims=True) * d, axis=1)
     dt = np.asarray(truth.lasers.directions)
-    ang = np.arccos(np.clip(np.abs(np.sum(d * dt, axis=1)), -1.0, 1.0))
+    # atan2 keeps full precision near zero, where arccos of a dot product bottoms out at ~1.5e-8 rad
+    ang = np.arctan2(np.linalg.norm(np.cross(d, dt), axis=1), np.abs(np.sum(d * dt, axis=1)))
     return pos, ang
 
 
