@@ -39,10 +39,14 @@ from ._lm import (
 )
 from ._pose import Pose
 from ._problem import Packed, pack, stack_poses
-from ._rig import Rig
+from ._rig import Rig, project_board_points, project_rim, project_spots
 from ._staged import CalibrationError, Staged, _flipped, board_poses, fit_lasers, staged
 
 _solve = jax.jit(solve, static_argnames=("loss", "max_steps"))
+# The passes before the last only have to bring the next one into its basin; the last
+# converges to round-off.
+_RTOL_START = 1e-6
+_RTOL_FINAL = 1e-10
 _covariance = jax.jit(covariance, static_argnames=("loss",))
 _rows = jax.jit(residual_rows)
 
@@ -156,7 +160,7 @@ def calibrate(
     arr = _arrays(pk)
     passes = []
 
-    def run(name, p, m, scale, kind_weight=None):
+    def run(name, p, m, scale, kind_weight=None, rtol=_RTOL_START):
         res = _solve(
             p,
             arr,
@@ -164,6 +168,7 @@ def calibrate(
             loss=loss,
             scale=scale,
             max_steps=max_steps,
+            rtol=rtol,
             kind_weight=None if kind_weight is None else jnp.asarray(kind_weight, dtype=float),
         )
         passes.append(
@@ -208,7 +213,7 @@ def calibrate(
         if n_flipped:
             passes[-1].result += f"; {n_flipped} board pose(s) flipped after it"
     # C: final pass at the re-estimated scale
-    params = run("C: joint (final)", params, masks, scale)
+    params = run("C: joint (final)", params, masks, scale, rtol=_RTOL_FINAL)
     cov = _covariance(params, arr, masks, loss, scale)
     t_total = time.perf_counter() - t0
     return CalibrationResult(
@@ -231,7 +236,7 @@ def _reflip_with_spots(params: Params, arr: Packed, masks: Masks, loss: str, sca
     R2, t2 = _flipped(R, t, xb, np.ones((n_p, 1)))
     twin = Params(params.rig, Pose(jnp.asarray(R2), jnp.asarray(t2)), params.chess)
     hold = Masks(jnp.zeros_like(masks.glob), jnp.concatenate([masks.blocks[:n_p], jnp.zeros(params.chess.t.shape[0])]))
-    twin = _solve(twin, arr, hold, loss=loss, scale=scale, max_steps=max_steps).params
+    twin = _solve(twin, arr, hold, loss=loss, scale=scale, max_steps=max_steps, rtol=_RTOL_START).params
     c_now = np.asarray(_block_costs(params, arr, loss, scale))[:n_p]
     c_twin = np.asarray(_block_costs(twin, arr, loss, scale))[:n_p]
     better = c_twin < c_now - 1e-9
@@ -439,3 +444,32 @@ def to_calibration(result: CalibrationResult, obs: Observations) -> Calibration:
         "joint": {"passes": [p.__dict__ for p in result.passes], "timings_s": result.timings},
     }
     return Calibration(result.rig, board_poses, cvp, {**rep, "stages": stages})
+
+
+_project_board = jax.jit(project_board_points)
+_project_spots = jax.jit(project_spots)
+_project_rim = jax.jit(project_rim)
+
+
+def reprojections(cal: Calibration, obs: Observations, view: int, rim_points: int = 360) -> dict:
+    """The calibrated model's pixels for one catadioptric view (for plots and checks).
+
+    Returns ``{"dots": {board: (M, 2)}, "spots": (S, 2), "rim": (K, 2)}``: the board
+    points through the mirror at the view's board poses, each detected spot's laser on
+    its board's plane (NaN where the spot has no posed board or the model has no pixel)
+    and the rim curve.  Invalid model pixels are NaN.
+    """
+    rig, poses, v = cal.rig, cal.board_poses[view], obs.views[view]
+    dots = {}
+    for b in v.boards:
+        if b in poses:
+            uv, ok = _project_board(rig, poses[b], jnp.asarray(obs.boards[b], dtype=float))
+            dots[b] = np.where(np.asarray(ok)[:, None], np.asarray(uv), np.nan)
+    spots = np.full((len(v.spots), 2), np.nan)
+    for i, s in enumerate(v.spots):
+        if s.board in poses:
+            uv, ok = _project_spots(rig, poses[s.board], jnp.asarray([s.laser]))
+            if bool(ok[0]):
+                spots[i] = np.asarray(uv[0])
+    uv, ok = _project_rim(rig, jnp.linspace(0.0, 2 * np.pi, rim_points, endpoint=False))
+    return {"dots": dots, "spots": spots, "rim": np.asarray(uv)[np.asarray(ok)]}

@@ -221,7 +221,10 @@ def _flipped(R: np.ndarray, t: np.ndarray, xb: np.ndarray, mask: np.ndarray) -> 
     s = np.linalg.norm(axis, axis=1, keepdims=True)
     ang = np.arctan2(s[:, 0], np.sum(n * n2, axis=1))
     axis = np.where(s > 1e-12, axis / np.maximum(s, 1e-300), 0.0)
-    Q = np.stack([np.asarray(so3_exp(jnp.asarray(a * th))) for a, th in zip(axis, ang, strict=True)])
+    k = np.zeros((len(axis), 3, 3))  # Rodrigues, batched: Q = I + sin(ang) K + (1 - cos(ang)) K^2
+    k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -axis[:, 2], axis[:, 1], -axis[:, 0]
+    k = k - k.transpose(0, 2, 1)
+    Q = np.eye(3) + np.sin(ang)[:, None, None] * k + (1 - np.cos(ang))[:, None, None] * (k @ k)
     R2 = Q @ R
     return R2, centre - np.einsum("pij,pj->pi", R2, xbar)
 
