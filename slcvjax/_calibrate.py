@@ -31,9 +31,10 @@ from ._lm import (
     Covariance,
     Masks,
     Params,
-    block_costs,
+    block_costs_of_rows,
     covariance,
     make_masks,
+    n_observations,
     residual_rows,
     solve,
 )
@@ -169,7 +170,7 @@ def calibrate(
             scale=scale,
             max_steps=max_steps,
             rtol=rtol,
-            kind_weight=None if kind_weight is None else jnp.asarray(kind_weight, dtype=float),
+            kind_weight=jnp.asarray([1.0] * 4 if kind_weight is None else kind_weight, dtype=float),
         )
         passes.append(
             JointPass(
@@ -221,7 +222,12 @@ def calibrate(
     )
 
 
-_block_costs = jax.jit(block_costs, static_argnames=("loss",))
+_costs_of_rows = jax.jit(block_costs_of_rows, static_argnames=("n_obs", "n_blocks", "loss"))
+
+
+def _block_costs(params: Params, arr: Packed, loss: str, scale: float):
+    """Per pose block robust cost, through the residual function compiled for the reports."""
+    return _costs_of_rows(_rows(params, arr), n_observations(arr), params.n_blocks, loss, scale)
 
 
 def _reflip_with_spots(params: Params, arr: Packed, masks: Masks, loss: str, scale: float, max_steps: int):
@@ -236,7 +242,8 @@ def _reflip_with_spots(params: Params, arr: Packed, masks: Masks, loss: str, sca
     R2, t2 = _flipped(R, t, xb, np.ones((n_p, 1)))
     twin = Params(params.rig, Pose(jnp.asarray(R2), jnp.asarray(t2)), params.chess)
     hold = Masks(jnp.zeros_like(masks.glob), jnp.concatenate([masks.blocks[:n_p], jnp.zeros(params.chess.t.shape[0])]))
-    twin = _solve(twin, arr, hold, loss=loss, scale=scale, max_steps=max_steps, rtol=_RTOL_START).params
+    kw = jnp.ones(4, dtype=float)  # the arguments' types as in calibrate()'s passes: one compilation
+    twin = _solve(twin, arr, hold, loss=loss, scale=scale, max_steps=max_steps, rtol=_RTOL_START, kind_weight=kw).params
     c_now = np.asarray(_block_costs(params, arr, loss, scale))[:n_p]
     c_twin = np.asarray(_block_costs(twin, arr, loss, scale))[:n_p]
     better = c_twin < c_now - 1e-9

@@ -239,11 +239,14 @@ def n_observations(pk: Packed) -> int:
 
 def block_costs(params: Params, pk: Packed, loss: str, scale) -> Float[Array, " NB"]:
     """The robust cost of the observations of each pose block (dots and spots of a board)."""
-    rows = _rows(params, pk, with_jac=False)
-    n_obs = n_observations(pk)
+    return block_costs_of_rows(_rows(params, pk, with_jac=False), n_observations(pk), params.n_blocks, loss, scale)
+
+
+def block_costs_of_rows(rows: Rows, n_obs: int, n_blocks: int, loss: str, scale) -> Float[Array, " NB"]:
+    """:func:`block_costs` from residual rows already evaluated."""
     rho = _obs_costs(rows, n_obs, loss, jnp.asarray(scale, dtype=float))
     block = jax.ops.segment_max(rows.pidx, rows.obs, num_segments=n_obs)
-    return jax.ops.segment_sum(rho, block, num_segments=params.n_blocks + 1)[: params.n_blocks]
+    return jax.ops.segment_sum(rho, block, num_segments=n_blocks + 1)[:n_blocks]
 
 
 def _obs_costs(rows: Rows, n_obs: int, loss: str, scale):
@@ -370,16 +373,19 @@ def make_masks(params: Params, freeze: frozenset | set | tuple = ()) -> Masks:
     n_l = params.rig.lasers.n
     glob = jnp.concatenate(
         [
-            jnp.full(N_CAM, 0.0 if "camera" in freeze else 1.0),
-            jnp.full(N_MIR, 0.0 if "mirror" in freeze else 1.0),
-            jnp.full(N_LAS * n_l, 0.0 if "lasers" in freeze else 1.0),
+            jnp.full(N_CAM, 0.0 if "camera" in freeze else 1.0, dtype=float),
+            jnp.full(N_MIR, 0.0 if "mirror" in freeze else 1.0, dtype=float),
+            jnp.full(N_LAS * n_l, 0.0 if "lasers" in freeze else 1.0, dtype=float),
         ]
     )
     p, c = params.poses.t.shape[0], params.chess.t.shape[0]
     blocks = jnp.concatenate(
-        [jnp.full(p, 0.0 if "poses" in freeze else 1.0), jnp.full(c, 0.0 if "chess_poses" in freeze else 1.0)]
+        [
+            jnp.full(p, 0.0 if "poses" in freeze else 1.0, dtype=float),
+            jnp.full(c, 0.0 if "chess_poses" in freeze else 1.0, dtype=float),
+        ]
     )
-    return Masks(glob, blocks)
+    return Masks(glob, blocks)  # strongly typed, so every pass shares one compilation
 
 
 class LMResult(NamedTuple):
@@ -424,20 +430,18 @@ def solve(
         w, c = robust_weights(rows, n_obs, loss, scale, kw)
         return normal_equations(rows, w, g, nb, masks.glob, masks.blocks), c
 
-    ne0, c0 = linearise(params)
-
-    def cond(s):
-        return ~s[5]
-
+    # the Jacobian is taken at the top of an iteration when the last step was accepted (or
+    # at the start), so the residual function with derivatives is traced only once
     def body(s):
-        p, ne, cost, lam, it, done, code = s
+        p, ne, cost, c0, lam, it, done, code, stale = s
+        ne, cost = jax.lax.cond(stale, linearise, lambda q: (ne, cost), p)
+        c0 = jnp.where(it == 0, cost, c0)
         dg, dp = schur_step(ne, lam)
         cand = p.retract(dg, dp)
         c_new = _cost(cand, pk, loss, scale, kw)
         ok = jnp.isfinite(c_new) & (c_new < cost)
         small = (cost - c_new) <= rtol * cost
         tiny = jnp.maximum(jnp.max(jnp.abs(dg)), jnp.max(jnp.abs(dp), initial=0.0)) < 1e-12
-        ne_new, _ = jax.lax.cond(ok, linearise, lambda q: (ne, cost), cand)
         p = jax.tree_util.tree_map(lambda a, b: jnp.where(ok, a, b), cand, p)
         cost_out = jnp.where(ok, c_new, cost)
         lam = jnp.where(ok, jnp.maximum(lam / 3.0, 1e-12), lam * 4.0)
@@ -449,10 +453,22 @@ def solve(
         out_of_steps = it >= max_steps
         code = jnp.where(converged, CONVERGED, jnp.where(stalled, STALLED, MAX_STEPS))
         done = converged | stalled | out_of_steps
-        return p, ne_new, cost_out, lam, it, done, code
+        return p, ne, cost_out, c0, lam, it, done, code, ok
 
-    state = (params, ne0, c0, jnp.asarray(1e-3), jnp.asarray(0), jnp.asarray(False), jnp.asarray(MAX_STEPS))
-    p, ne, cost, lam, it, done, code = jax.lax.while_loop(cond, body, state)
+    ne0 = Normal(jnp.zeros((g, g)), jnp.zeros(g), jnp.zeros((nb, g, 6)), jnp.zeros((nb, 6, 6)), jnp.zeros((nb, 6)))
+    inf = jnp.asarray(jnp.inf)
+    state = (
+        params,
+        ne0,
+        inf,
+        inf,
+        jnp.asarray(1e-3),
+        jnp.asarray(0),
+        jnp.asarray(False),
+        jnp.asarray(MAX_STEPS),
+        jnp.asarray(True),
+    )
+    p, _, cost, c0, _, it, _, code, _ = jax.lax.while_loop(lambda s: ~s[6], body, state)
     return LMResult(p, cost, c0, it, code)
 
 
