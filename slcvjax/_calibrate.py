@@ -52,6 +52,7 @@ _covariance = jax.jit(covariance, static_argnames=("loss",))
 _rows = jax.jit(residual_rows)
 
 RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))  # median of |r| / sigma for 2D Gaussian r
+HALF_NORMAL_MEDIAN = 0.6744897501960817  # median of |r| / sigma for 1D Gaussian r
 
 
 def _arrays(pk: Packed) -> Packed:
@@ -67,6 +68,21 @@ def _per_observation(params: Params, pk: Packed) -> tuple[np.ndarray, np.ndarray
     kind = np.asarray(jax.ops.segment_max(rows.kind, rows.obs, num_segments=n_obs))
     ok = np.asarray(jax.ops.segment_min(rows.valid.astype(int), rows.obs, num_segments=n_obs)) > 0
     return np.sqrt(r2), kind, ok
+
+
+def kind_sigmas(params: Params, pk: Packed, min_count: int = 10) -> np.ndarray:
+    """Per kind (dot, spot, rim, chess corner) the noise sigma (px) from its median residual.
+
+    Rim residuals are 1D (a distance to the rim curve), the others 2D.  NaN for a kind
+    with fewer than ``min_count`` valid observations.
+    """
+    norm, kind, ok = _per_observation(params, pk)
+    out = np.full(4, np.nan)
+    for k in range(4):
+        sel = ok & (kind == k)
+        if sel.sum() >= min_count:
+            out[k] = np.median(norm[sel]) / (HALF_NORMAL_MEDIAN if k == 2 else RAYLEIGH_MEDIAN)
+    return out
 
 
 def robust_sigma(params: Params, pk: Packed) -> float:
@@ -101,6 +117,7 @@ class CalibrationResult:
     scale: float
     passes: list[JointPass]
     timings: dict = field(default_factory=dict)
+    kind_sigma: dict = field(default_factory=dict)  # per kind noise sigma (px) from its median residual
 
     @property
     def rig(self) -> Rig:
@@ -213,12 +230,24 @@ def calibrate(
         params, n_flipped = _reflip_with_spots(params, arr, masks, loss, scale, max_steps)
         if n_flipped:
             passes[-1].result += f"; {n_flipped} board pose(s) flipped after it"
-    # C: final pass at the re-estimated scale
+    # C: final pass at the re-estimated scale.  Every kind keeps weight 1: weighting each by
+    # its own noise (the rim's is larger in rendered images) made the lasers worse from images
+    # (benchmarks/images_vs_file.py), where the dots' errors are mostly systematic
     params = run("C: joint (final)", params, masks, scale, rtol=_RTOL_FINAL)
-    cov = _covariance(params, arr, masks, loss, scale)
+    cov = _covariance(params, arr, masks, loss, scale, kind_weight=jnp.ones(4, dtype=float))
+    sigmas = kind_sigmas(params, pk)
     t_total = time.perf_counter() - t0
     return CalibrationResult(
-        params, st, pk, masks, cov, loss, float(scale), passes, {"staged_s": t_staged, "total_s": t_total}
+        params,
+        st,
+        pk,
+        masks,
+        cov,
+        loss,
+        float(scale),
+        passes,
+        {"staged_s": t_staged, "total_s": t_total},
+        dict(zip(KIND_NAMES, sigmas.tolist(), strict=True)),
     )
 
 
@@ -322,7 +351,7 @@ def cramer_rao(truth: Calibration, obs: Observations, sigma: float) -> dict:
     params = Params(truth.rig, poses, chess_stack)
     masks = make_masks(params)
     # plain least squares (Huber at 1e9 px), sharing the compiled covariance of calibrate()
-    cov = _covariance(params, _arrays(pk), masks, "huber", 1e9, sigma=sigma)
+    cov = _covariance(params, _arrays(pk), masks, "huber", 1e9, sigma=sigma, kind_weight=jnp.ones(4, dtype=float))
     x_ref = laser_working_points(truth.rig, poses, pk)
     pos, ang = laser_std(truth.rig, np.asarray(cov.glob), x_ref)
     return {
@@ -390,12 +419,14 @@ def report(result: CalibrationResult, obs: Observations) -> dict:
         "sigma_px": sigma,
         "dof": int(result.cov.dof),
         "by_kind_rms_px": {KIND_NAMES[k]: _rms(norm[ok & (kind == k)]) for k in range(4)},
+        "by_kind_sigma_px": {k: (None if not np.isfinite(v) else v) for k, v in result.kind_sigma.items()},
         "per_view_rms_px": per_view,
         "per_board_rms_px": per_board,
         "per_laser_rms_px": per_laser,
         "per_direct_view_rms_px": per_direct,
         "invalid": int(np.sum(~ok)),
         "outliers": outliers,
+        "rim_outliers": int(np.sum(ok & (kind == 2) & (norm > 5.0 * (result.kind_sigma.get("rim") or sigma)))),
         "loss": {"kind": result.loss, "scale_px": result.scale},
     }
     cov = np.asarray(result.cov.glob)

@@ -598,6 +598,21 @@ class DetectionReport:
             out.append(f"{name}: {desc}" + (f"; {'; '.join(probs)}" if probs else ""))
         return out
 
+    def summary(self) -> str:
+        """One line: how many images had problems, and how often each kind of problem came up."""
+        probs = [p for ps in self.problems.values() for p in ps]
+        kinds = {
+            "boards left out": sum("board left out" in p for p in probs),
+            "row shifts assumed": sum("row shift assumed" in p for p in probs),
+            "missing spots": sum(p.count(",") + 1 for p in probs if p.startswith("no spot for laser")),
+            "spots left out": sum(p.endswith("left out") and ("spot" in p) for p in probs),
+        }
+        with_problems = sum(1 for ps in self.problems.values() if ps)
+        listed = ", ".join(f"{v} {k}" for k, v in kinds.items() if v)
+        return f"{with_problems} of {len(self.counts)} images with something not found" + (
+            f" ({listed})" if listed else ""
+        )
+
 
 def detect_folder(folder: str | Path, progress: bool = False) -> tuple[Observations, DetectionReport]:
     """Detect everything in an image folder described by its ``setup.json``.

@@ -114,21 +114,24 @@ def _check_format(ctx: _Ctx, doc: Any, expected: str):
         ctx.fail("format", f"expected {expected!r}, got {fmt!r}")
 
 
-def write_json_atomic(path: str | os.PathLike, doc: Any) -> None:
-    """Write JSON atomically (temporary file beside the target, then rename); rejects NaN."""
+def write_text_atomic(path: str | os.PathLike, text: str) -> None:
+    """Write a text file atomically (temporary file beside the target, then rename)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    text = json.dumps(doc, indent=1, allow_nan=False)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as f:
             f.write(text)
-            f.write("\n")
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def write_json_atomic(path: str | os.PathLike, doc: Any) -> None:
+    """Write JSON atomically (temporary file beside the target, then rename); rejects NaN."""
+    write_text_atomic(path, json.dumps(doc, indent=1, allow_nan=False) + "\n")
 
 
 # --------------------------------------------------------------------------- observations

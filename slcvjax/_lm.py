@@ -250,25 +250,30 @@ def block_costs_of_rows(rows: Rows, n_obs: int, n_blocks: int, loss: str, scale)
 
 
 def _obs_costs(rows: Rows, n_obs: int, loss: str, scale):
-    return _robust(rows, n_obs, loss, scale)[1]
+    return _robust(rows, n_obs, loss, scale, jnp.ones(4))[1]
 
 
 def robust_weights(rows: Rows, n_obs: int, loss: str, scale, kind_weight=None) -> tuple[Array, Array]:
     """Per-row IRLS weights and the total robust cost (dots and spots robust, the rest plain).
 
-    ``kind_weight`` (4,) multiplies the weight of each kind (dot, spot, rim, chess); 0 drops it.
+    ``kind_weight`` (4,) weighs each kind (dot, spot, rim, chess); 0 drops it.  A weight
+    ``(sigma / sigma_kind)^2`` whitens a kind to the noise ``sigma`` before the robust loss,
+    so that ``scale`` (in units of ``sigma``) suits every kind.
     """
-    w, rho, kind_obs = _robust(rows, n_obs, loss, scale)
-    kw = jnp.ones(4) if kind_weight is None else kind_weight
-    w = w * kw[kind_obs]
-    return w[rows.obs], jnp.sum(rho * kw[kind_obs])
+    kw = jnp.ones(4) if kind_weight is None else jnp.asarray(kind_weight, dtype=float)
+    w, rho, _ = _robust(rows, n_obs, loss, scale, kw)
+    return w[rows.obs], jnp.sum(rho)
 
 
-def _robust(rows: Rows, n_obs: int, loss: str, scale):
+def _robust(rows: Rows, n_obs: int, loss: str, scale, kw):
     """Per-observation IRLS weights, costs (invalid ones at a fixed penalty) and kinds."""
-    sq = jax.ops.segment_sum(rows.r**2, rows.obs, num_segments=n_obs)
+    kind_obs = jax.ops.segment_max(rows.kind, rows.obs, num_segments=n_obs)
+    k = kw[kind_obs]
+    sq = k * jax.ops.segment_sum(rows.r**2, rows.obs, num_segments=n_obs)  # whitened
     norm = jnp.sqrt(sq)
-    robust = jax.ops.segment_max(jnp.where(rows.kind <= 1, 1, 0), rows.obs, num_segments=n_obs) > 0
+    # dots and spots; the rim and the chessboard corners stay plain (a robust rim made the
+    # lasers from rendered images worse in benchmarks/images_vs_file.py)
+    robust = kind_obs <= 1
     c = scale
     if loss == "huber":
         w = jnp.where(norm <= c, 1.0, safe_div(c, norm))
@@ -279,13 +284,12 @@ def _robust(rows: Rows, n_obs: int, loss: str, scale):
     else:
         w = jnp.ones_like(sq)
         rho = 0.5 * sq
-    w = jnp.where(robust, w, 1.0)
+    w = jnp.where(robust, w, 1.0) * k
     rho = jnp.where(robust, rho, 0.5 * sq)
     # an invalid prediction (off the mirror, off the sensor) costs a fixed penalty, so that a
     # step cannot lower the cost by pushing observations out of the model's reach
     valid = jax.ops.segment_min(rows.valid.astype(jnp.int32), rows.obs, num_segments=n_obs) > 0
-    rho = jnp.where(valid, rho, INVALID_PENALTY)
-    kind_obs = jax.ops.segment_max(rows.kind, rows.obs, num_segments=n_obs)
+    rho = jnp.where(valid, rho, INVALID_PENALTY * k)
     return w, rho, kind_obs
 
 
@@ -481,15 +485,25 @@ class Covariance(NamedTuple):
     dof: Int[Array, ""]
 
 
-def covariance(params: Params, pk: Packed, masks: Masks, loss: str, scale, sigma: float | None = None) -> Covariance:
+def covariance(
+    params: Params,
+    pk: Packed,
+    masks: Masks,
+    loss: str,
+    scale,
+    sigma: float | None = None,
+    kind_weight: Array | None = None,
+) -> Covariance:
     """``sigma^2 (J^T W J)^-1`` by the Schur complement; ``sigma`` from the residuals when None.
 
     The residual estimate is ``sum(w r^2) / (n - k)`` over the valid scalar residuals
     (``n``) and the estimated parameters (``k``).  Frozen parameters get zero variance.
+    ``kind_weight`` (4,) as in :func:`solve`: with weights ``(sigma / sigma_kind)^2``
+    the covariance holds for kinds of different noise.
     """
     g, nb = params.n_global, params.n_blocks
     rows = _rows(params, pk)
-    w, _ = robust_weights(rows, n_observations(pk), loss, jnp.asarray(scale, dtype=float))
+    w, _ = robust_weights(rows, n_observations(pk), loss, jnp.asarray(scale, dtype=float), kind_weight)
     ne = normal_equations(rows, w, g, nb, masks.glob, masks.blocks)
     seen_blocks = (
         jax.ops.segment_sum(

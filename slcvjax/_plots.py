@@ -112,3 +112,149 @@ def plot_pipe(result: dict, out_dir, axis=(0.0, 0.0, 1.0)) -> list[Path]:
     fig.savefig(paths[-1], dpi=110, bbox_inches="tight")
     plt.close(fig)
     return paths
+
+
+def _cone_mesh(mirror, n_az: int = 48, n_s: int = 8):
+    """Surface points of the cone mirror as (3, n_s, n_az) grids for ``plot_surface``."""
+    from ._safe import orthonormal_basis
+
+    apex, axis = np.asarray(mirror.apex), np.asarray(mirror.axis)
+    e1, e2 = (np.asarray(e) for e in orthonormal_basis(mirror.axis))
+    s = np.linspace(0.0, float(mirror.height), n_s)[:, None, None]
+    a = np.linspace(0.0, 2 * np.pi, n_az)[None, :, None]
+    ring = np.cos(a) * e1 + np.sin(a) * e2
+    pts = apex + s * axis + (s * float(mirror.radius) / float(mirror.height)) * ring
+    return pts[..., 0], pts[..., 1], pts[..., 2]
+
+
+def plot_rig(rig, path, walls=(), truth=None, title: str | None = None) -> Path:
+    """A 3D view of the sensor (the paper's Fig. 5): camera, cone mirror, laser lines and targets.
+
+    Args:
+        rig: the calibrated :class:`~slcvjax._rig.Rig`.
+        path: the PNG file to write.
+        walls: ``(name, T_cam_board, points_board)`` of the targets to draw (one view's
+            walls, say); each laser line is drawn up to the farthest wall it meets in front
+            of its origin, or 300 mm without walls.
+        truth: a second rig drawn dashed (the simulator's truth), for comparison.
+    """
+    from ._lasers import line_plane_intersection
+
+    plt = _plt()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig = plt.figure(figsize=(8, 7))
+    ax = fig.add_subplot(projection="3d")
+    ax.plot_surface(*_cone_mesh(rig.mirror), color="silver", alpha=0.5, linewidth=0)
+    ax.scatter([0], [0], [0], marker="s", s=40, color="k")
+    size = 0.6 * float(rig.mirror.height) + 10.0
+    for k, c in enumerate(("r", "g", "b")):  # the camera frame's axes
+        ax.plot([0, size * (k == 0)], [0, size * (k == 1)], [0, size * (k == 2)], color=c, lw=1.5)
+    ax.text(0, 0, -0.5 * size, "camera", fontsize=8)
+    spans = []
+    for name, T, pts in walls:
+        x = np.asarray(T.apply(np.asarray(pts, dtype=float)))
+        ax.scatter(*x.T, s=2, color="0.3")
+        cx = x.mean(axis=0)
+        ax.text(*cx, name, fontsize=7, color="0.3")
+        spans.append(x)
+
+    def reach(las, i):
+        """The line from its origin to the wall it meets within the wall's extent (else 300 mm)."""
+        p, d = np.asarray(las.points[i]), np.asarray(las.directions[i])
+        hits = []
+        for _, T, pts in walls:
+            x, ok = line_plane_intersection(las.points[i], las.directions[i], T)
+            s = float(np.dot(np.asarray(x) - p, d))
+            xb = np.asarray(T.inverse().apply(x))[:2]
+            lo, hi = np.min(pts, axis=0)[:2], np.max(pts, axis=0)[:2]
+            pad = 0.25 * (hi - lo) + 1.0
+            if bool(ok) and s > 0 and np.all(xb >= lo - pad) and np.all(xb <= hi + pad):
+                hits.append(s)
+        return p, p + (min(hits) if hits else 300.0) * d
+
+    colors = plt.cm.tab10(np.arange(rig.lasers.n) % 10)
+    for i in range(rig.lasers.n):
+        a, b = reach(rig.lasers, i)
+        ax.plot(*np.stack([a, b]).T, color=colors[i], lw=1.2, label=f"laser {i}" if rig.lasers.n <= 12 else None)
+        ax.scatter(*a, s=10, color=colors[i])
+        spans.append(np.stack([a, b]))
+        if truth is not None:
+            a, b = reach(truth.lasers, i)
+            ax.plot(*np.stack([a, b]).T, color=colors[i], lw=0.8, ls="--")
+    allp = np.concatenate(spans + [np.zeros((1, 3))])
+    mid, half = (allp.max(0) + allp.min(0)) / 2, (allp.max(0) - allp.min(0)).max() / 2
+    ax.set_xlim(mid[0] - half, mid[0] + half)
+    ax.set_ylim(mid[1] - half, mid[1] + half)
+    ax.set_zlim(mid[2] - half, mid[2] + half)
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.set_zlabel("z (mm)")
+    if rig.lasers.n <= 12:
+        ax.legend(fontsize=7, loc="upper left")
+    extra = " (dashed: truth)" if truth is not None else ""
+    ax.set_title(title or f"Camera, cone mirror and laser lines{extra}")
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def plot_detections(image, view, predicted: dict, path, gain: float | None = None) -> Path:
+    """A catadioptric image with its detections and the calibrated model's reprojections.
+
+    Args:
+        image: the image (H, W, 3) BGR uint8 (as OpenCV reads it).
+        view: the view's :class:`~slcvjax._io.ViewObs` (detected dots, spots and rim pixels).
+        predicted: the reprojections, keyed ``"dots"`` -> ``{board: (M, 2)}`` (aligned
+            with the view's board pixels), ``"spots"`` -> (S, 2) aligned with
+            ``view.spots`` (NaN where none), ``"rim"`` -> (K, 2) points of the rim curve.
+        path: the PNG file to write.
+        gain: residual vectors are drawn this many times their length (by default a round
+            factor that draws the median residual about 10 px long).
+    """
+    plt = _plt()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    h, w = image.shape[:2]
+    fig, ax = plt.subplots(figsize=(w / 80, h / 80))
+    ax.imshow(image[..., ::-1], interpolation="nearest")
+    res = []
+    for b, (px, seen) in view.boards.items():
+        q = predicted.get("dots", {}).get(b)
+        obs = px[seen]
+        ax.plot(*obs.T, "o", ms=4, mfc="none", mec="lime", mew=0.8)
+        if q is not None:
+            qq = q[seen]
+            ok = np.all(np.isfinite(qq), axis=1)
+            res.append((obs[ok], qq[ok]))
+    if view.spots:
+        sp = np.stack([s.pixel for s in view.spots])
+        ax.plot(*sp.T, "+", ms=8, color="yellow", mew=1.0)
+        q = predicted.get("spots")
+        if q is not None:
+            ok = np.all(np.isfinite(q), axis=1)
+            res.append((sp[ok], q[ok]))
+    if len(view.rim):
+        ax.plot(*view.rim.T, ".", ms=1.5, color="cyan")
+    rim = predicted.get("rim")
+    if rim is not None and len(rim):
+        ax.plot(*np.vstack([rim, rim[:1]]).T, "-", lw=0.6, color="magenta")
+    if gain is None:  # the median residual drawn about 10 px long, at a round gain
+        norms = np.concatenate([np.linalg.norm(q - o, axis=1) for o, q in res]) if res else np.zeros(0)
+        med = float(np.median(norms)) if norms.size else 0.0
+        gain = min((g for g in (1, 2, 5, 10, 20, 50, 100, 200, 500, 1000) if g * med >= 10.0), default=1000.0)
+    for obs, q in res:
+        d = (q - obs) * gain
+        ax.quiver(
+            obs[:, 0], obs[:, 1], d[:, 0], d[:, 1], angles="xy", scale_units="xy", scale=1, color="red", width=0.002
+        )
+    ax.set_xlim(0, w)
+    ax.set_ylim(h, 0)
+    ax.set_title(
+        f"{view.name}: dots (o), spots (+), rim pixels (.), model rim (line); reprojection error x{gain:g} (arrows)",
+        fontsize=8,
+    )
+    ax.axis("off")
+    fig.savefig(path, dpi=100, bbox_inches="tight")
+    plt.close(fig)
+    return path
