@@ -7,7 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ._io import FormatError, write_calibration, write_observations
+from ._io import FormatError, write_calibration, write_observations, write_text_atomic
+from ._simulate import PRESETS
 
 
 def _summary(obs, truth) -> str:
@@ -90,33 +91,67 @@ def _cmd_detect(args) -> int:
 
 
 def _cmd_demo(args) -> int:
-    from ._calibrate import calibrate, cramer_rao, laser_errors, to_calibration
+    from ._calibrate import (
+        calibrate,
+        cramer_rao,
+        laser_errors,
+        reprojections,
+        robust_sigma,
+        to_calibration,
+    )
+    from ._rig import Rig
     from ._simulate import make_scene, simulate
 
     t0 = time.perf_counter()
     out = Path(args.out)
+    images = not args.no_images
+    steps = 5 if images else 4
+    step = iter(range(1, steps + 1))
     print("slcvjax demo: the simulated reference rig (paper preset)", flush=True)
-    print("[1/4] simulate", flush=True)
+    print(f"[{next(step)}/{steps}] simulate", flush=True)
     scene = make_scene("paper", n_lasers=args.lasers, n_views=args.views)
-    obs, truth = simulate(scene, noise=args.noise, seed=args.seed)
-    write_observations(out / "observations.json", obs)
+    exact, truth = simulate(scene, noise=0.0 if images else args.noise, seed=args.seed)
+    write_observations(out / "observations.json", exact)
     write_calibration(out / "truth.json", truth)
-    print(_summary(obs, truth))
-    print("[2/4] calibrate: staged, then joint (the first run compiles, about a minute)", flush=True)
+    print(_summary(exact, truth))
+    timings = {}
+    if images:
+        from ._detect import detect_folder, read_image
+        from ._render import RenderOptions, render_scene
+
+        print(f"[{next(step)}/{steps}] render the images, then detect", flush=True)
+        t1 = time.perf_counter()
+        opts = RenderOptions(noise=args.image_noise, seed=args.seed)
+        render_scene(scene, out / "images", opts, progress=sys.stderr.isatty())
+        timings["render"] = time.perf_counter() - t1
+        t1 = time.perf_counter()
+        obs, rep = detect_folder(out / "images", progress=sys.stderr.isatty())
+        timings["detect"] = time.perf_counter() - t1
+        print(rep.summary() + " (each image's list: detection_report.txt)")
+        write_text_atomic(out / "detection_report.txt", "\n".join(rep.lines()) + "\n")
+        write_observations(out / "detected.json", obs)
+        n_dots = sum(int(s.sum()) for v in obs.views for _, s in v.boards.values())
+        n_spots = sum(len(v.spots) for v in obs.views)
+        print(f"detected {n_dots} dots and {n_spots} spots in {len(obs.views)} views, "
+              f"{sum(int(c.seen.sum()) for c in obs.calibration_views)} chessboard corners")  # fmt: skip
+    else:
+        obs = exact
+    print(f"[{next(step)}/{steps}] calibrate: staged, then joint (the first run compiles, about a minute)", flush=True)
     t1 = time.perf_counter()
     res = calibrate(obs)
-    t_cal = time.perf_counter() - t1
+    timings["calibration"] = time.perf_counter() - t1
     cal = to_calibration(res, obs)
     write_calibration(out / "calibration.json", cal)
     print_report(cal, "calibration")
-    print("[3/4] compare with the truth and the Cramer-Rao bound", flush=True)
-    bound = cramer_rao(truth, obs, max(args.noise, 1e-3))
+    print(f"[{next(step)}/{steps}] compare with the truth and the Cramer-Rao bound", flush=True)
+    # the bound at the noise of the points and spots (the detector's, from the residuals, for images)
+    sigma = robust_sigma(res.params, res.packed) if images else max(args.noise, 1e-3)
+    bound = cramer_rao(truth, obs, sigma)
     pos, ang = laser_errors(res.rig, truth.rig, bound["x_ref"])
     st = res.staged
-    from ._rig import Rig
-
     pos_s, ang_s = laser_errors(Rig(st.camera, st.mirror, st.lasers), truth.rig, bound["x_ref"])
     unc = cal.extra["uncertainty"]["lasers"]
+    print(f"bound at sigma {sigma:.3f} px" + (" (the dots' and spots' residuals)" if images else ""))
     print("laser  error (mm, deg)    reported std (mm, deg)   bound std (mm, deg)   staged error (mm, deg)")
     for i in range(len(pos)):
         print(
@@ -129,7 +164,16 @@ def _cmd_demo(args) -> int:
         f"RMS    {rms(pos):6.3f} {np.degrees(rms(ang)):6.3f}     bound {bound['position_rms_mm']:.3f} "
         f"{np.degrees(bound['direction_rms_rad']):.3f}     staged {rms(pos_s):.3f} {np.degrees(rms(ang_s)):.3f}"
     )
-    print(f"[4/4] measure: the sensor in a 150 mm pipe at 16 poses, {args.noise:g} px, with this calibration")
+    from ._plots import plot_detections, plot_rig
+
+    v0 = 0
+    walls = [(b, cal.board_poses[v0][b], obs.boards[b]) for b in sorted(cal.board_poses[v0])]
+    plots = [plot_rig(res.rig, out / "rig_3d.png", walls, truth=truth.rig).name]
+    if images:
+        img = read_image(out / "images" / f"{obs.views[v0].name}.png", tuple(obs.image_size))
+        plots.append(plot_detections(img, obs.views[v0], reprojections(cal, obs, v0), out / "detections.png").name)
+    print(f"[{next(step)}/{steps}] measure: the sensor in a 150 mm pipe at 16 poses, {args.noise:g} px, "
+          "with this calibration", flush=True)  # fmt: skip
     from ._pipe import measurement_inputs, pipe_experiment, pipe_scene
 
     t2 = time.perf_counter()
@@ -137,12 +181,15 @@ def _cmd_demo(args) -> int:
     pipe = pipe_experiment(res.rig, pipe_scene(truth.rig, seed=args.seed), args.noise, args.seed, rig_cov=rig_cov)
     pipe_files = _write_pipe(out, pipe, "pipe_points.json", args.noise)
     _pipe_report(pipe)
-    t_pipe = time.perf_counter() - t2
+    timings["pipe"] = time.perf_counter() - t2
     print(
-        f"timings: calibration {t_cal:.1f} s (compilation included), pipe {t_pipe:.1f} s, "
-        f"total {time.perf_counter() - t0:.1f} s"
+        "timings: "
+        + ", ".join(f"{k} {v:.1f} s" for k, v in timings.items())
+        + f" (compilation included), total {time.perf_counter() - t0:.1f} s"
     )
-    files = ["observations.json", "truth.json", "calibration.json"] + pipe_files
+    files = ["observations.json", "truth.json"]
+    files += ["images/", "detected.json", "detection_report.txt"] if images else []
+    files += ["calibration.json"] + plots + pipe_files
     print(f"wrote {out}/ ({', '.join(files)})")
     return 0
 
@@ -172,6 +219,8 @@ def print_report(cal, name: str = "") -> None:
 
     listed = "; ".join(_outlier(o) for o in out[:10]) + (" ..." if len(out) > 10 else "")
     print(f"outliers   {len(out)}" + (f": {listed}" if out else ""))
+    if res.get("rim_outliers"):
+        print(f"rim        {res['rim_outliers']} rim pixel(s) more than 5 sigma (the rim's own) off the rim")
     if res["invalid"]:
         print(f"invalid    {res['invalid']} observation(s) fall outside the model (off the mirror or the sensor)")
     cs = unc["camera_std"]
@@ -389,6 +438,38 @@ def _write_pipe(out: Path, res: dict, points_name: str, noise: float) -> list[st
     return ["pipe_observations.json", points_name] + [p.name for p in plots]
 
 
+def _parse_levels(text: str) -> tuple[float, ...]:
+    try:
+        return tuple(float(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise ValueError(f"--noise: expected comma-separated pixel sigmas such as 0,0.3,0.6, got {text!r}") from None
+
+
+def _cmd_sweep(args) -> int:
+    from ._sweep import run_sweep, write_sweep
+
+    levels = _parse_levels(args.noise)
+    print(
+        f"sweep: preset {args.preset}, noise {list(levels)} px, {args.trials} trials per level, "
+        f"{args.lasers} lasers, {args.views} views (the first calibration compiles, about a minute)",
+        flush=True,
+    )
+    doc = run_sweep(args.preset, levels, args.trials, args.seed, args.lasers, args.views, progress=sys.stderr.isatty())
+    m = doc["methods"]
+    print("noise px   joint pos mm  dir deg   bound pos mm  dir deg   staged pos mm  dir deg")
+    for i, s in enumerate(doc["noise"]):
+        print(
+            f"{s:8.3f}   {m['joint']['position_rms_mm'][i]:10.4f} {m['joint']['direction_rms_deg'][i]:8.4f}"
+            f"   {m['bound']['position_rms_mm'][i]:10.4f} {m['bound']['direction_rms_deg'][i]:8.4f}"
+            f"   {m['staged']['position_rms_mm'][i]:11.4f} {m['staged']['direction_rms_deg'][i]:8.4f}"
+        )
+    n = len(doc["trials_detail"])
+    print(f"{doc['converged']} of {n} joint calibrations converged; {doc['seconds']:.1f} s")
+    files = write_sweep(doc, args.out)
+    print(f"wrote {', '.join(str(f) for f in files)}")
+    return 0
+
+
 def _cmd_pipe(args) -> int:
     from ._io import read_calibration
     from ._pipe import measurement_inputs, pipe_experiment, pipe_scene
@@ -466,6 +547,16 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--axis", default=None, help="pipe axis x,y,z in the camera frame (default 0,0,1)")
     m.set_defaults(func=_cmd_measure)
 
+    w = sub.add_parser("sweep", help="noise-sensitivity sweep: Monte Carlo calibrations beside the bound")
+    w.add_argument("--preset", default="paper", choices=PRESETS, help="simulated scene (default paper)")
+    w.add_argument("--noise", default="0,0.3,0.6,0.9", help="pixel noise levels, px (default 0,0.3,0.6,0.9)")
+    w.add_argument("--trials", type=int, default=8, help="trials per level (default 8)")
+    w.add_argument("--seed", type=int, default=0, help="first seed (trial t of level l uses seed + 1000 l + t)")
+    w.add_argument("--lasers", type=int, default=10, help="lasers (default 10)")
+    w.add_argument("--views", type=int, default=16, help="catadioptric views (default 16)")
+    w.add_argument("--out", default="slcvjax-sweep", help="output directory (default ./slcvjax-sweep)")
+    w.set_defaults(func=_cmd_sweep)
+
     q = sub.add_parser("pipe", help="the paper's pipe experiment on the simulated rig")
     q.add_argument("--calibration", help="measure with this calibration (default: the true rig)")
     q.add_argument("--noise", type=float, default=0.5, help="spot pixel noise in px (default 0.5)")
@@ -479,7 +570,16 @@ def build_parser() -> argparse.ArgumentParser:
     q.set_defaults(func=_cmd_pipe)
 
     d = sub.add_parser("demo", help="the main job on the simulated reference rig")
-    d.add_argument("--noise", type=float, default=0.5, help="pixel noise sigma in px (default 0.5)")
+    d.add_argument(
+        "--noise",
+        type=float,
+        default=0.5,
+        help="pixel noise of the pipe spots (and of --no-images), px (default 0.5)",
+    )
+    d.add_argument("--image-noise", type=float, default=1.0, help="sensor noise of the images, grey levels (default 1)")
+    d.add_argument(
+        "--no-images", action="store_true", help="calibrate the simulated observations directly (no render or detect)"
+    )
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("--views", type=int, default=16, help="catadioptric views (default 16)")
     d.add_argument("--lasers", type=int, default=10, help="lasers (default 10)")
