@@ -49,6 +49,7 @@ N_CAM, N_MIR, N_LAS = 9, 5, 4
 N_CM = N_CAM + N_MIR
 LOSSES = ("huber", "cauchy", "linear")
 RIM_MARGIN = 0.05  # the cone extended 5 % past its rim for residuals (see solve_mirror_point)
+APEX_MARGIN = 0.05  # and 5 % of its height past the apex
 INVALID_PENALTY = 0.5 * 30.0**2  # the cost of a 30 px residual, per invalid observation
 
 # result codes
@@ -90,7 +91,9 @@ def _cm(cam: Camera, mir: ConeMirror, d):
 
 def _dot(d, cam, mir, R, t, xb, px):
     c, m = _cm(cam, mir, d)
-    res = project_through_mirror(c, m, Pose(R, t).retract(d[N_CM:]).apply(xb), rim_margin=RIM_MARGIN)
+    res = project_through_mirror(
+        c, m, Pose(R, t).retract(d[N_CM:]).apply(xb), rim_margin=RIM_MARGIN, apex_margin=APEX_MARGIN
+    )
     return res.uv - px, res.valid
 
 
@@ -100,7 +103,7 @@ def _spot(d, cam, mir, lp, ld, R, t, px):
     x, ok = line_plane_intersection(
         las.points[0], las.directions[0], Pose(R, t).retract(d[N_CM + N_LAS :]), forward_only=False
     )
-    res = project_through_mirror(c, m, x, rim_margin=RIM_MARGIN)
+    res = project_through_mirror(c, m, x, rim_margin=RIM_MARGIN, apex_margin=APEX_MARGIN)
     return res.uv - px, ok & res.valid
 
 

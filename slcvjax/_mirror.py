@@ -209,7 +209,12 @@ class MirrorProjection(NamedTuple):
 
 
 def solve_mirror_point(
-    mirror: ConeMirror, p_cam: Float[Array, "3"], iters: int = 10, implicit: bool = True, rim_margin: float = 0.0
+    mirror: ConeMirror,
+    p_cam: Float[Array, "3"],
+    iters: int = 10,
+    implicit: bool = True,
+    rim_margin: float = 0.0,
+    apex_margin: float = 0.0,
 ) -> tuple[Float[Array, "3"], Bool[Array, ""]]:
     """The mirror point whose reflection sends the camera's ray through ``p_cam``.
 
@@ -217,18 +222,22 @@ def solve_mirror_point(
     the finite cone (``0 < s <= h (1 + rim_margin)``) that faces both the camera
     and the target.  ``rim_margin > 0`` extends the surface past the rim, which a
     calibration uses so that a point observed at the rim's edge keeps a residual
-    while the estimate is still off.  Implicit derivative (``implicit=True``) or
-    unrolled (baseline).
+    while the estimate is still off.  ``apex_margin > 0`` likewise extends each
+    generatrix's tangent plane past the apex (``s > -h apex_margin``): the solution
+    in ``(s, theta)`` and its pixel continue smoothly through the apex, so a point
+    seen right at the apex is not lost when the estimate moves it a hair across.
+    Implicit derivative (``implicit=True``) or unrolled (baseline).
     """
     params = (mirror.apex, mirror.axis, mirror.k, p_cam)
     x0 = _initial_guess(mirror, p_cam)
     x = newton_implicit(_reflection_residual, x0, params, iters, implicit=implicit)
-    m = _mirror_point(x[0], x[1], mirror.apex, mirror.axis, mirror.k)[0]
-    n = surface_normal(mirror, m)
+    m, u, _, _ = _mirror_point(x[0], x[1], mirror.apex, mirror.axis, mirror.k)
+    n = safe_normalize(u - mirror.k * mirror.axis)  # the generatrix's normal (surface_normal for s > 0)
     s = jax.lax.stop_gradient(x[0])
+    s_min = jnp.where(apex_margin > 0, -apex_margin * mirror.height, 1e-9)
     valid = (
         (newton_residual_norm(_reflection_residual, x, params) < 1e-9)
-        & (s > 1e-9)
+        & (s > s_min)
         & (s <= mirror.height * (1.0 + 1e-12 + rim_margin))
         & (jnp.dot(n, -m) > 0.0)
         & (jnp.dot(n, p_cam - m) > 0.0)
@@ -243,6 +252,7 @@ def project_through_mirror(
     iters: int = 10,
     implicit: bool = True,
     rim_margin: float = 0.0,
+    apex_margin: float = 0.0,
 ) -> MirrorProjection:
     """Pixel at which a 3D point (camera frame, mm) is seen through the mirror.
 
@@ -251,7 +261,9 @@ def project_through_mirror(
     mirror's tangent plane, or the pixel is off the sensor;
     ``uv`` is then finite but meaningless, and gradients stay finite.
     """
-    m, ok = solve_mirror_point(mirror, p_cam, iters=iters, implicit=implicit, rim_margin=rim_margin)
+    m, ok = solve_mirror_point(
+        mirror, p_cam, iters=iters, implicit=implicit, rim_margin=rim_margin, apex_margin=apex_margin
+    )
     uv, ok_cam = project(cam, m)
     valid = ok & ok_cam & in_image(cam, jax.lax.stop_gradient(uv))
     return MirrorProjection(jnp.where(valid, uv, 0.0), m, valid)

@@ -234,3 +234,38 @@ def test_mirror_retract_keeps_a_unit_axis_and_moves_5_dof():
     assert np.linalg.matrix_rank(j, tol=1e-9) == 5
     m2 = mirror.retract(jnp.array([0.1, 0.2, 0.3, 0.05, -0.02]))
     assert float(jnp.linalg.norm(m2.axis)) == pytest.approx(1.0, abs=1e-15)
+
+
+def test_apex_margin_continues_the_projection_smoothly_through_the_apex():
+    from slcvjax._simulate import paper_rig
+
+    rig = paper_rig(1)
+    cam, mirror = rig.camera, rig.mirror
+    # a wall point seen a hair off the apex: back-project a pixel next to the apex's image
+    apex_px, _ = sj.project(cam, mirror.apex)
+    ray = _back_project_one(cam, mirror, apex_px + jnp.array([2.0, 0.0]))
+    assert bool(ray.valid)
+    target = ray.point + 200.0 * ray.direction
+    a = mirror.axis
+    side = orthonormal_basis(a)[1]  # moving the apex this way moves the reflection across it
+
+    def pixel(shift, margin):
+        m = sj.ConeMirror(mirror.apex + shift * side, a, mirror.radius, mirror.height)
+        res = sj.project_through_mirror(cam, m, target, apex_margin=margin)
+        return res.uv, res.valid, jnp.dot(res.mirror_point - m.apex, a)
+
+    shifts = np.linspace(-0.5, 0.2, 36)
+    uv, ok, s = (np.asarray(x) for x in jax.jit(jax.vmap(lambda d: pixel(d, 0.05)))(jnp.asarray(shifts)))
+    _, ok0, _ = (np.asarray(x) for x in jax.jit(jax.vmap(lambda d: pixel(d, 0.0)))(jnp.asarray(shifts)))
+    assert s.min() < 0 < s.max()
+    assert ok.all()  # with the margin every shift keeps its pixel
+    assert not ok0[s < 0].any() and ok0[s > 1e-6].all()  # without it the far side is lost
+    # smooth: the pixel's second differences are tiny against its first differences
+    d1, d2 = np.diff(uv, axis=0), np.diff(uv, n=2, axis=0)
+    assert np.abs(d2).max() < 0.05 * np.abs(d1).max()
+    # and the implicit derivative at the apex crossing matches central differences
+    k = int(np.argmin(np.abs(s)))
+    jac = np.asarray(jax.jacfwd(lambda d: pixel(d, 0.05)[0])(shifts[k]))
+    h = 1e-6
+    fd = (np.asarray(pixel(shifts[k] + h, 0.05)[0]) - np.asarray(pixel(shifts[k] - h, 0.05)[0])) / (2 * h)
+    np.testing.assert_allclose(jac, fd, rtol=1e-5, atol=1e-6)
