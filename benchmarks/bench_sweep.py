@@ -1,0 +1,102 @@
+"""Batched joint solves for sweeps: a plain loop over the compiled solve against ``vmap`` over trials.
+
+Run: ``python benchmarks/bench_sweep.py [--trials 16] [--out FILE]``.
+
+Each trial is the paper preset at 0.5 px with its own noise seed, started from the
+perturbed truth (as in ``bench_calibrate.py``), solved by the project's Schur LM with
+plain squares.  Every trial has the same shapes, so both ways compile once:
+
+* ``loop``: the jitted solve called once per trial;
+* ``vmap``: one jitted ``vmap`` of the solve over all trials (the batch runs until its
+  slowest trial converges, and under ``vmap`` both branches of every ``cond`` run).
+
+Reports calibrations (joint solves) per second for each, compilation apart, on the
+default JAX device; run it where a GPU is present to time both there.
+"""
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from bench_forward import machine
+
+from slcvjax import _lm
+from slcvjax._calibrate import _arrays
+from slcvjax._problem import pack, stack_poses
+from slcvjax._simulate import make_scene, simulate
+
+
+def trials(n: int):
+    scene = make_scene("paper")
+    starts, packs = [], []
+    for seed in range(n):
+        obs, truth = simulate(scene, noise=0.5, seed=seed)
+        pk = pack(obs)
+        poses = stack_poses([truth.board_poses[v][b] for v, b in pk.pose_keys])
+        chess = stack_poses([truth.calibration_view_poses[c] for c in pk.chess_keys])
+        p_true = _lm.Params(truth.rig, poses, chess)
+        rng = np.random.default_rng(10_000 + seed)
+        dg = rng.normal(0, 1e-3, p_true.n_global)
+        dp = rng.normal(0, 1e-3, (p_true.n_blocks, 6))
+        starts.append(p_true.retract(jnp.asarray(dg), jnp.asarray(dp)))
+        packs.append(_arrays(pk))
+    masks = _lm.make_masks(starts[0])
+    return starts, packs, masks
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--trials", type=int, default=16)
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args()
+    starts, packs, masks = trials(args.trials)
+    kw = jnp.ones(4)
+
+    def one(p, pk):
+        return _lm.solve(p, pk, masks, loss="linear", scale=1.0, max_steps=200, kind_weight=kw)
+
+    solve = jax.jit(one)
+    t0 = time.perf_counter()
+    jax.block_until_ready(solve(starts[0], packs[0]).cost)
+    loop_compile = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    steps = []
+    for p, pk in zip(starts, packs, strict=True):
+        r = solve(p, pk)
+        steps.append(int(r.steps))
+    loop_s = time.perf_counter() - t0
+
+    stack = lambda xs: jax.tree_util.tree_map(lambda *a: jnp.stack(a), *xs)  # noqa: E731
+    bp, bk = stack(starts), stack(packs)
+    batched = jax.jit(jax.vmap(one))
+    t0 = time.perf_counter()
+    jax.block_until_ready(batched(bp, bk).cost)
+    vmap_first = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    rb = batched(bp, bk)
+    jax.block_until_ready(rb.cost)
+    vmap_s = time.perf_counter() - t0
+    loop_costs = np.array([float(solve(p, k).cost) for p, k in zip(starts, packs, strict=True)])
+    same = float(np.max(np.abs(np.asarray(rb.cost) - loop_costs) / loop_costs))
+    out = {
+        "benchmark": "sweep",
+        "machine": machine(),
+        "trials": args.trials,
+        "loop": {"compile_s": loop_compile, "run_s": loop_s, "calibrations_per_s": args.trials / loop_s},
+        "vmap": {"compile_s": vmap_first - vmap_s, "run_s": vmap_s, "calibrations_per_s": args.trials / vmap_s},
+        "steps": {"min": min(steps), "median": float(np.median(steps)), "max": max(steps)},
+        "max_relative_cost_difference": same,
+    }
+    out["vmap_over_loop"] = out["vmap"]["calibrations_per_s"] / out["loop"]["calibrations_per_s"]
+    print(json.dumps(out, indent=1))
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()
