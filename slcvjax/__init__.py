@@ -9,6 +9,7 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
+from ._calibrate import CalibrationResult, calibrate, cramer_rao, laser_errors, to_calibration  # noqa: E402
 from ._camera import (  # noqa: E402
     Camera,
     distort,
@@ -18,6 +19,22 @@ from ._camera import (  # noqa: E402
     project_normalized,
     project_points,
     undistort,
+)
+from ._implicit import (  # noqa: E402
+    Sensitivity,
+    differentiable_solution,
+    sensitivity,
+    solution_tangent,
+    stationary_point,
+)
+from ._io import (  # noqa: E402
+    Calibration,
+    FormatError,
+    Observations,
+    read_calibration,
+    read_observations,
+    write_calibration,
+    write_observations,
 )
 from ._lasers import Lasers, line_plane_intersection  # noqa: E402
 from ._mirror import (  # noqa: E402
@@ -41,24 +58,36 @@ from ._rig import (  # noqa: E402
     project_rim,
     project_spots,
 )
+from ._simulate import Scene, make_scene, simulate  # noqa: E402
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "Calibration",
+    "CalibrationResult",
     "Camera",
     "ConeMirror",
+    "FormatError",
     "Lasers",
     "MirrorProjection",
     "MirrorRay",
+    "Observations",
     "Pose",
     "RayHit",
     "Rig",
+    "Scene",
+    "Sensitivity",
     "back_project",
+    "calibrate",
+    "cramer_rao",
+    "differentiable_solution",
     "distort",
     "in_image",
     "intersect",
+    "laser_errors",
     "laser_spot_cam",
     "line_plane_intersection",
+    "make_scene",
     "pixel_to_ray",
     "project",
     "project_board_points",
@@ -68,10 +97,19 @@ __all__ = [
     "project_rim",
     "project_spots",
     "project_through_mirror",
+    "read_calibration",
+    "read_observations",
     "reflect",
+    "sensitivity",
+    "simulate",
     "so3_exp",
     "so3_log",
+    "solution_tangent",
     "solve_mirror_point",
+    "stationary_point",
     "surface_normal",
+    "to_calibration",
     "undistort",
+    "write_calibration",
+    "write_observations",
 ]

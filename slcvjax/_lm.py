@@ -107,18 +107,25 @@ def _spot(d, cam, mir, lp, ld, R, t, px):
     return res.uv - px, ok & res.valid
 
 
+def rim_value(cam: Camera, mir: ConeMirror, uv: Float[Array, "2"]) -> tuple[Float[Array, ""], Bool[Array, ""]]:
+    """``F(uv) = |X(uv) - C| - r`` (mm): the pixel's ray on the rim's plane against the rim circle."""
+    d, ok = pixel_to_ray(cam, uv)
+    centre = mir.apex + mir.height * mir.axis
+    lam = safe_div(jnp.dot(centre, mir.axis), jnp.dot(d, mir.axis))
+    return safe_norm(lam * d - centre) - mir.radius, ok & (lam > 0.0)
+
+
+def rim_scale(cam: Camera, mir: ConeMirror, uv: Float[Array, "2"]) -> Float[Array, ""]:
+    """``|dF/duv|`` (mm per px), the normalisation of :func:`rim_distance`."""
+    return safe_norm(jax.jacfwd(lambda u: rim_value(cam, mir, u)[0])(uv))
+
+
 def rim_distance(cam: Camera, mir: ConeMirror, uv: Float[Array, "2"]) -> tuple[Float[Array, ""], Bool[Array, ""]]:
-    """Signed distance (px, first order) of a pixel from the projected rim circle."""
+    """Signed distance (px, first order) of a pixel from the projected rim circle.
 
-    def f(uv):
-        d, ok = pixel_to_ray(cam, uv)
-        centre = mir.apex + mir.height * mir.axis
-        lam = safe_div(jnp.dot(centre, mir.axis), jnp.dot(d, mir.axis))
-        return safe_norm(lam * d - centre) - mir.radius, ok & (lam > 0.0)
-
-    val, ok = f(uv)
-    grad = jax.jacfwd(lambda u: f(u)[0])(jax.lax.stop_gradient(uv))
-    scale = jax.lax.stop_gradient(safe_norm(grad))
+    The normalisation is held constant in the derivatives (a Sampson distance)."""
+    val, ok = rim_value(cam, mir, uv)
+    scale = jax.lax.stop_gradient(rim_scale(cam, mir, jax.lax.stop_gradient(uv)))
     return safe_div(val, scale), ok & (scale > 0.0)
 
 

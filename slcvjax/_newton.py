@@ -14,6 +14,8 @@ therefore one Newton step, not the unrolled loop.  ``implicit=False`` instead
 differentiates through every iteration (kept for the benchmark's baseline).
 """
 
+import contextlib
+import functools
 from collections.abc import Callable
 
 import jax
@@ -22,11 +24,50 @@ from jaxtyping import Array, Float, PyTree
 
 from ._safe import solve2x2
 
+_SECOND_ORDER = [False]
+
+
+@contextlib.contextmanager
+def exact_second_order():
+    """Within this context (while tracing), derivatives of a root are exact to every order.
+
+    The one frozen-Jacobian step gives exact first derivatives only: its second
+    derivative misses the root's own curvature.  Inside the context the converged root
+    carries a custom JVP, ``dx = -J(x, theta)^-1 df/dtheta dtheta``, written with ``x``
+    itself (so differentiating the rule again differentiates the root again): the
+    second derivatives that the implicit derivative of a calibration's solution needs
+    (:mod:`._implicit`) and the bound's gradient in experiment design.  It acts at trace
+    time: functions already compiled outside it keep their first-order form.
+    """
+    old = _SECOND_ORDER[0]
+    _SECOND_ORDER[0] = True
+    try:
+        yield
+    finally:
+        _SECOND_ORDER[0] = old
+
 
 def _step(f, x, theta):
     fx = f(x, theta)
     jac = jax.jacfwd(f)(x, theta)
     return x - solve2x2(jac, fx)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _exact_root(f, x, theta):
+    """``x`` (a converged root of ``f(., theta)``), differentiable to any order in ``theta``."""
+    return x
+
+
+@_exact_root.defjvp
+def _exact_root_jvp(f, primals, tangents):
+    x, theta = primals
+    _, dtheta = tangents
+    # the rule is itself differentiable: ``x`` below carries this same rule, so a second
+    # derivative picks up the root's curvature through the Jacobian's dependence on it
+    x = _exact_root(f, x, theta)
+    _, fdot = jax.jvp(lambda th: f(x, th), (theta,), (dtheta,))
+    return x, -solve2x2(jax.jacfwd(f)(x, theta), fdot)
 
 
 def newton_implicit(
@@ -45,6 +86,8 @@ def newton_implicit(
     theta_sg = jax.lax.stop_gradient(theta)
     x = jax.lax.fori_loop(0, iters, lambda _, x: _step(f, x, theta_sg), jax.lax.stop_gradient(x0))
     x = jax.lax.stop_gradient(x)
+    if _SECOND_ORDER[0]:
+        return _exact_root(f, x, theta)
     jac = jax.lax.stop_gradient(jax.jacfwd(f)(x, theta_sg))
     return x - solve2x2(jac, f(x, theta))
 
