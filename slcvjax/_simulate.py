@@ -125,23 +125,49 @@ def _chess_poses(camera: Camera, board: np.ndarray, n: int, rng: np.random.Gener
     return poses
 
 
-def paper_scene(n_lasers: int = 10, n_views: int = 16, n_chess_views: int = 12) -> Scene:
-    """The paper's calibration: the sensor moved to ``n_views`` poses inside the box."""
+# the paper preset's box and motion range: roll, pitch, yaw (deg) and x, y, z (mm) of T_box_cam
+PAPER_HALF_WIDTH = 175.0
+PAPER_ROTATION_DEG = (3.0, 3.0, 20.0)
+PAPER_TRANSLATION_MM = (25.0, 25.0, 8.0)
+
+
+def paper_views(n_views: int = 16) -> np.ndarray:
+    """The preset's sensor poses in the box, ``(n_views, 6)``: rotation vector (rad) and translation (mm).
+
+    View 0 is the box frame itself; the others are drawn uniformly within the motion
+    range (``PAPER_ROTATION_DEG``, ``PAPER_TRANSLATION_MM``) from a fixed seed.
+    """
     if n_views < 1:
         raise ValueError(f"n_views must be at least 1, got {n_views}")
-    rig = paper_rig(n_lasers)
     rng = np.random.default_rng(7)  # fixed: the preset's motions
-    half_width, grid_z, pitch, pitch_y = 175.0, -40.0, PITCH_X, 30.0
-    boards, T_box_walls = _box_walls(half_width, grid_z, pitch, pitch_y)
+    rot, tra = np.asarray(PAPER_ROTATION_DEG), np.asarray(PAPER_TRANSLATION_MM)
+    views = np.zeros((n_views, 6))
+    for i in range(1, n_views):
+        views[i, :3] = np.radians(rng.uniform(-rot, rot))
+        views[i, 3:] = rng.uniform(-tra, tra)
+    return views
+
+
+def box_walls(half_width: float = PAPER_HALF_WIDTH) -> tuple[dict[str, np.ndarray], list[Pose]]:
+    """The preset's four walls (3x3 dot grids) around a box of ``half_width``: points and ``T_box_wall``."""
+    return _box_walls(half_width, -40.0, PITCH_X, 30.0)
+
+
+def box_scene(rig: Rig, views: np.ndarray, half_width: float = PAPER_HALF_WIDTH, n_chess_views: int = 12) -> Scene:
+    """The sensor at the given poses in the box: ``views`` (V, 6) holds ``T_box_cam`` per view.
+
+    Each row is a rotation vector (rad) and a translation (mm), as from
+    :func:`paper_views` or an experiment design (:mod:`._design`).
+    """
+    views = np.asarray(views, dtype=float)
+    if views.ndim != 2 or views.shape[1] != 6 or views.shape[0] < 1:
+        raise ValueError(f"views must be an (n, 6) array with n >= 1, got shape {views.shape}")
+    if not np.all(np.isfinite(views)):
+        raise ValueError("views: non-finite value")
+    boards, T_box_walls = box_walls(half_width)
     box_poses = []
-    for i in range(n_views):
-        if i == 0:
-            rvec, t = np.zeros(3), np.zeros(3)
-        else:
-            rvec = np.radians(rng.uniform([-3, -3, -20], [3, 3, 20]))
-            t = rng.uniform([-25, -25, -8], [25, 25, 8])
-        T_box_cam = Pose(so3_exp(jnp.asarray(rvec)), jnp.asarray(t))
-        T_cam_box = T_box_cam.inverse()
+    for v in views:
+        T_cam_box = Pose(so3_exp(jnp.asarray(v[:3])), jnp.asarray(v[3:])).inverse()
         box_poses.append({f"wall{j}": T_cam_box @ T_box_walls[j] for j in range(4)})
     chess = grid_points(9, 6, 25.0)
     chess_poses = _chess_poses(rig.camera, chess, n_chess_views, np.random.default_rng(11))
@@ -149,11 +175,16 @@ def paper_scene(n_lasers: int = 10, n_views: int = 16, n_chess_views: int = 12) 
     boards["chess"] = chess
     info = {
         "preset": "paper",
-        "box_half_width_mm": half_width,
-        "wall_grid": {"cols": 3, "rows": 3, "pitch_x_mm": pitch, "pitch_y_mm": pitch_y, "centre_z_mm": grid_z},
+        "box_half_width_mm": float(half_width),
+        "wall_grid": {"cols": 3, "rows": 3, "pitch_x_mm": PITCH_X, "pitch_y_mm": 30.0, "centre_z_mm": -40.0},
         "chessboard": {"cols": 9, "rows": 6, "square_mm": 25.0},
     }
     return Scene(rig, boards, box_poses, "chess", chess_poses, 90, info)
+
+
+def paper_scene(n_lasers: int = 10, n_views: int = 16, n_chess_views: int = 12) -> Scene:
+    """The paper's calibration: the sensor moved to ``n_views`` poses inside the box."""
+    return box_scene(paper_rig(n_lasers), paper_views(n_views), PAPER_HALF_WIDTH, n_chess_views)
 
 
 _proj_points = jax.jit(project_board_points)

@@ -470,6 +470,69 @@ def _cmd_sweep(args) -> int:
     return 0
 
 
+def _parse_triple(text: str, name: str) -> np.ndarray:
+    try:
+        vals = [float(x) for x in text.split(",")]
+    except ValueError:
+        raise ValueError(f"--{name}: expected three comma-separated numbers, got {text!r}") from None
+    if len(vals) != 3 or not all(np.isfinite(vals)) or min(vals) < 0:
+        raise ValueError(f"--{name}: expected three non-negative numbers, got {text!r}")
+    return np.asarray(vals)
+
+
+def _cmd_design(args) -> int:
+    from ._design import Plan, confirm, design_document, optimise, plot_design
+    from ._io import write_json_atomic
+    from ._simulate import box_scene, paper_rig, paper_views
+
+    if args.views < 1:
+        raise ValueError(f"--views must be at least 1, got {args.views}")
+    if not (np.isfinite(args.box) and args.box > 0):
+        raise ValueError(f"--box must be a positive width in mm, got {args.box}")
+    rot = np.radians(_parse_triple(args.rotation, "rotation"))
+    tra = _parse_triple(args.translation, "translation")
+    rig = paper_rig(args.lasers)
+    # the start: the preset's random motions, scaled from the preset's range to this one
+    base = paper_views(args.views)
+    preset = Plan(rig, base)
+    start = base * np.where(preset.scale > 0, np.concatenate([rot, tra]) / preset.scale, 0.0)
+    scene = box_scene(rig, start, args.box / 2.0)
+    plan = Plan.from_scene(scene, start, noise=args.noise, rotation_range=rot, translation_range=tra)
+    print(
+        f"design: {args.views} views in a {args.box:g} mm box, motion +-{np.degrees(rot).round(2).tolist()} deg, "
+        f"+-{tra.tolist()} mm, {args.noise} px (compiling the bound's gradient takes about 30 s)",
+        flush=True,
+    )
+    res = optimise(plan, steps=args.steps, position_weight=args.position_weight, progress=sys.stderr.isatty())
+    b, a = res.predicted_before, res.predicted_after
+    print("predicted (Cramer-Rao)   position rms mm   direction rms deg   dots  spots")
+    for name, x in (("before", b), ("after", a)):
+        print(f"  {name:22s} {x.position_rms_mm:15.4f}   {x.direction_rms_deg:17.4f}   {x.n_dots:4d}  {x.n_spots:5d}")
+    print(
+        f"  ratio                  {a.position_rms_mm / b.position_rms_mm:15.3f}   "
+        f"{a.direction_rms_deg / b.direction_rms_deg:17.3f}   "
+        f"({len(res.history) - 1} steps, {res.timings['total_s']:.1f} s)"
+    )
+    confirmed = None
+    if args.confirm:
+        print(f"confirming by simulation: {args.confirm} calibrations of each plan (each compiles once)", flush=True)
+        confirmed = {}
+        for name, p in (("before", res.before), ("after", res.after)):
+            confirmed[name] = confirm(p, args.confirm, args.seed, progress=sys.stderr.isatty())
+            c = confirmed[name]
+            print(
+                f"  {name:6s} simulated rms: position {c['position_rms_mm']:.4f} mm, direction "
+                f"{c['direction_rms_deg']:.4f} deg ({c['converged']}/{c['trials']} converged)",
+                flush=True,
+            )
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(out / "design.json", design_document(res, confirmed))
+    png = plot_design(res, out / "design.png")
+    print(f"wrote {out / 'design.json'}, {png}")
+    return 0
+
+
 def _cmd_pipe(args) -> int:
     from ._io import read_calibration
     from ._pipe import measurement_inputs, pipe_experiment, pipe_scene
@@ -556,6 +619,24 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--views", type=int, default=16, help="catadioptric views (default 16)")
     w.add_argument("--out", default="slcvjax-sweep", help="output directory (default ./slcvjax-sweep)")
     w.set_defaults(func=_cmd_sweep)
+
+    g = sub.add_parser("design", help="plan a calibration: predict the lasers' accuracy and optimise the sensor poses")
+    g.add_argument("--views", type=int, default=16, help="catadioptric views (default 16)")
+    g.add_argument("--box", type=float, default=350.0, help="box width in mm (default 350, the preset's)")
+    g.add_argument(
+        "--rotation", default="3,3,20", help="allowed roll,pitch,yaw of the sensor in the box, +- deg (default 3,3,20)"
+    )
+    g.add_argument("--translation", default="25,25,8", help="allowed x,y,z motion in the box, +- mm (default 25,25,8)")
+    g.add_argument("--noise", type=float, default=0.5, help="pixel noise in px (default 0.5)")
+    g.add_argument("--lasers", type=int, default=10, help="lasers (default 10)")
+    g.add_argument("--steps", type=int, default=60, help="most gradient steps (default 60)")
+    g.add_argument(
+        "--position-weight", type=float, default=0.5, help="weight of the position error beside the direction's (0.5)"
+    )
+    g.add_argument("--confirm", type=int, default=0, help="simulate and calibrate each plan N times")
+    g.add_argument("--seed", type=int, default=0, help="first seed of the confirmation")
+    g.add_argument("--out", default="slcvjax-design", help="output directory (default ./slcvjax-design)")
+    g.set_defaults(func=_cmd_design)
 
     q = sub.add_parser("pipe", help="the paper's pipe experiment on the simulated rig")
     q.add_argument("--calibration", help="measure with this calibration (default: the true rig)")

@@ -1,0 +1,499 @@
+"""Experiment design: the predicted laser accuracy of a planned calibration, and better sensor poses.
+
+A plan is the rig, the box (four walls with 3x3 dot grids, half width ``w``), the
+direct chessboard views and ``V`` sensor poses in the box, ``T_box_cam`` of view ``v``
+given as a rotation vector and a translation (mm).  Its **prediction** is the
+Cramer-Rao bound of the calibration it would give: ``sigma^2 (J^T J)^-1`` at the true
+parameters (camera, mirror, lasers, every board pose, every chessboard pose), with
+``J`` the Jacobian of the joint problem's residuals (:mod:`._lm`) over every dot that is
+visible, each laser's spot on the wall its beam meets first where it is visible, the
+rim's edge pixels and the chessboard corners, propagated to each laser's position error
+at its working point and its direction error (as :func:`._calibrate.cramer_rao`).
+
+The **design** moves the sensor poses within a motion range to minimise the predicted
+error, by gradient descent through the bound.  Each coordinate of a pose is
+``range * tanh(u)``, so every iterate stays in range.  The gradient differentiates the
+Jacobian itself, so the reflection point's second derivatives enter (exact, by
+:func:`._newton.exact_second_order`).  Which points are visible and which wall a beam
+meets are decided at the current poses and held while differentiating (they change
+discretely); a step is accepted only when the bound, re-evaluated with the new
+visibility, goes down (Adam steps with a backtracking length).
+
+The objective is the mean over lasers of the predicted direction variance divided by
+its value at the start, plus (``position_weight``) the same for the position variance:
+a direction-only design may trade position for direction.
+"""
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _lm
+from ._calibrate import _laser_offset
+from ._lm import N_CM, N_LAS, Params
+from ._mirror import project_through_mirror
+from ._newton import exact_second_order
+from ._pose import Pose, so3_exp
+from ._problem import Packed
+from ._rig import Rig, project_rim
+from ._simulate import PAPER_HALF_WIDTH, PAPER_ROTATION_DEG, PAPER_TRANSLATION_MM, Scene, box_walls
+
+N_RIM = 90  # rim edge pixels per view, as the simulator writes
+MIN_DOTS = 4  # visible dots a board needs in a view for its pose
+
+
+@dataclass
+class Plan:
+    """A planned calibration: the sensor's poses in the box and what is known around them.
+
+    ``views`` (V, 6): ``T_box_cam`` of each view (rotation vector in rad, translation in mm).
+    ``rotation_range`` (rad) and ``translation_range`` (mm): the allowed motion, per axis
+    (roll, pitch, yaw; x, y, z of the box frame).
+    """
+
+    rig: Rig
+    views: np.ndarray
+    half_width: float = PAPER_HALF_WIDTH
+    rotation_range: np.ndarray = field(default_factory=lambda: np.radians(PAPER_ROTATION_DEG))
+    translation_range: np.ndarray = field(default_factory=lambda: np.asarray(PAPER_TRANSLATION_MM, dtype=float))
+    noise: float = 0.5
+    chess_poses: list[Pose] = field(default_factory=list)
+    chess_board: np.ndarray | None = None
+
+    def __post_init__(self):
+        self.views = np.asarray(self.views, dtype=float)
+        self.rotation_range = np.asarray(self.rotation_range, dtype=float)
+        self.translation_range = np.asarray(self.translation_range, dtype=float)
+        if self.views.ndim != 2 or self.views.shape[1] != 6 or self.views.shape[0] < 1:
+            raise ValueError(f"views must be an (n, 6) array with n >= 1, got shape {self.views.shape}")
+        if self.rotation_range.shape != (3,) or self.translation_range.shape != (3,):
+            raise ValueError("rotation_range and translation_range need 3 values each")
+        if np.any(self.rotation_range < 0) or np.any(self.translation_range < 0):
+            raise ValueError("the motion range must not be negative")
+        if not (np.isfinite(self.noise) and self.noise > 0):
+            raise ValueError(f"noise must be a positive number of pixels, got {self.noise}")
+        if not (np.isfinite(self.half_width) and self.half_width > 0):
+            raise ValueError(f"half_width must be positive, got {self.half_width}")
+
+    @staticmethod
+    def from_scene(scene: Scene, views: np.ndarray, noise: float = 0.5, **kw) -> "Plan":
+        """A plan with the scene's rig, chessboard views and box, at the given sensor poses."""
+        return Plan(
+            scene.rig,
+            views,
+            half_width=float(scene.info.get("box_half_width_mm", PAPER_HALF_WIDTH)),
+            noise=noise,
+            chess_poses=list(scene.chess_poses),
+            chess_board=np.asarray(scene.boards[scene.chess_board]),
+            **kw,
+        )
+
+    @property
+    def scale(self) -> np.ndarray:
+        return np.concatenate([self.rotation_range, self.translation_range])
+
+
+# ----------------------------------------------------------------------------- the bound as a function of the poses
+
+
+def _problem(plan: Plan):
+    """The fixed structure of the plan's joint problem: every dot, every (view, laser, wall) spot."""
+    boards, T_box_walls = box_walls(plan.half_width)
+    walls = [boards[f"wall{j}"] for j in range(4)]
+    n_v, n_l, n_d = plan.views.shape[0], plan.rig.lasers.n, walls[0].shape[0]
+    dot_pose = np.repeat(np.arange(4 * n_v), n_d)
+    dot_points = np.tile(np.concatenate(walls), (n_v, 1))
+    vv, ll, jj = np.meshgrid(np.arange(n_v), np.arange(n_l), np.arange(4), indexing="ij")
+    spot_pose, spot_laser = (4 * vv + jj).ravel(), ll.ravel()
+    angles = np.linspace(0.0, 2 * np.pi, N_RIM * n_v, endpoint=False)
+    rim, ok = project_rim(plan.rig, jnp.asarray(angles))
+    rim = np.asarray(rim)[np.asarray(ok)]
+    if plan.chess_poses:
+        board = np.asarray(plan.chess_board)
+        chess_pose = np.repeat(np.arange(len(plan.chess_poses)), board.shape[0])
+        chess_points = np.tile(board, (len(plan.chess_poses), 1))
+        chess = Pose(jnp.stack([p.R for p in plan.chess_poses]), jnp.stack([p.t for p in plan.chess_poses]))
+    else:
+        chess_pose, chess_points = np.zeros(0, int), np.zeros((0, 3))
+        chess = Pose(jnp.zeros((0, 3, 3)), jnp.zeros((0, 3)))
+    pk = Packed(
+        jnp.asarray(dot_pose),
+        jnp.asarray(dot_points),
+        jnp.zeros((dot_pose.size, 2)),
+        jnp.asarray(spot_pose),
+        jnp.asarray(spot_laser),
+        jnp.zeros((spot_pose.size, 2)),
+        jnp.asarray(rim),
+        jnp.asarray(chess_pose),
+        jnp.asarray(chess_points),
+        jnp.zeros((chess_pose.size, 2)),
+        (),
+        (),
+    )
+    T_bw = Pose(jnp.stack([p.R for p in T_box_walls]), jnp.stack([p.t for p in T_box_walls]))
+    return pk, T_bw, chess
+
+
+def _poses(views, T_bw: Pose) -> Pose:
+    """``T_cam_wall`` of every (view, wall), index ``4 v + j``."""
+    R_bc = jax.vmap(so3_exp)(views[:, :3])
+    t_bc = views[:, 3:]
+    R_cb = jnp.swapaxes(R_bc, 1, 2)
+    t_cb = -jnp.einsum("vij,vj->vi", R_cb, t_bc)
+    R = jnp.einsum("vij,wjk->vwik", R_cb, T_bw.R).reshape(-1, 3, 3)
+    t = (jnp.einsum("vij,wj->vwi", R_cb, T_bw.t) + t_cb[:, None, :]).reshape(-1, 3)
+    return Pose(R, t)
+
+
+def _weights(rig: Rig, poses: Pose, pk: Packed, n_v: int):
+    """Per observation, 1 where it would be observed: dots visible, spots on their first wall and visible."""
+    cam, mir, las = rig.camera, rig.mirror, rig.lasers
+
+    def dot_ok(R, t, xb):
+        return project_through_mirror(cam, mir, Pose(R, t).apply(xb)).valid
+
+    w_dot = jax.vmap(dot_ok)(poses.R[pk.dot_pose], poses.t[pk.dot_pose], pk.dot_points)
+
+    def spot(R, t, li):
+        p, d = las.points[li], las.directions[li]
+        n = R[:, 2]
+        den = jnp.dot(n, d)
+        lam = jnp.where(jnp.abs(den) > 1e-9, jnp.dot(n, t - p) / jnp.where(jnp.abs(den) > 1e-9, den, 1.0), -1.0)
+        x = p + lam * d
+        return lam, x, project_through_mirror(cam, mir, x).valid
+
+    # a board needs 4 visible dots for its pose (the staged calibration's PnP): with fewer,
+    # neither its dots nor its spots can be used
+    usable = jax.ops.segment_sum(w_dot.astype(int), pk.dot_pose, num_segments=poses.t.shape[0]) >= MIN_DOTS
+    w_dot = w_dot & usable[pk.dot_pose]
+    lam, x, vis = jax.vmap(spot)(poses.R[pk.spot_pose], poses.t[pk.spot_pose], pk.spot_laser)
+    lam4 = jax.lax.stop_gradient(jnp.where(lam > 0.0, lam, jnp.inf).reshape(n_v, las.n, 4))
+    first = (jnp.arange(4)[None, None, :] == jnp.argmin(lam4, axis=2)[..., None]) & jnp.isfinite(lam4)
+    w_spot = first.reshape(-1) & vis & usable[pk.spot_pose]
+    # each laser's working point: the mean of its spots
+    xs = x.reshape(n_v, las.n, 4, 3)
+    ws = w_spot.reshape(n_v, las.n, 4, 1).astype(float)
+    x_ref = jnp.sum(ws * xs, axis=(0, 2)) / jnp.maximum(jnp.sum(ws, axis=(0, 2)), 1.0)
+    return w_dot, w_spot, x_ref
+
+
+def _predict(views, rig, T_bw, chess, pk, sigma, n_v):
+    """Per laser: predicted position variance (mm^2) at the working point and direction variance (rad^2)."""
+    poses = _poses(views, T_bw)
+    # which points are seen is held while differentiating; the working points move with the poses
+    w_dot, w_spot, x_ref = _weights(rig, poses, pk, n_v)
+    w_dot, w_spot = jax.lax.stop_gradient(w_dot), jax.lax.stop_gradient(w_spot)
+    params = Params(rig, poses, chess)
+    with exact_second_order():
+        rows = _lm._rows(params, pk)
+    n_d, n_s = pk.dot_pose.shape[0], pk.spot_pose.shape[0]
+    n_obs = _lm.n_observations(pk)
+    w_obs = jnp.concatenate([w_dot, w_spot, jnp.ones(n_obs - n_d - n_s, dtype=bool)]).astype(float)
+    g, nb = params.n_global, params.n_blocks
+    masks = _lm.make_masks(params)
+    ne = _lm.normal_equations(rows, w_obs[rows.obs], g, nb, masks.glob, masks.blocks)
+    Dinv_Bt = jnp.linalg.solve(ne.D, jnp.swapaxes(ne.B, 1, 2))
+    S = ne.A - jnp.einsum("kgi,kih->gh", ne.B, Dinv_Bt)
+    cov = sigma**2 * jnp.linalg.inv(S)
+
+    def laser(i):
+        c = jax.lax.dynamic_slice(cov, (N_CM + N_LAS * i, N_CM + N_LAS * i), (N_LAS, N_LAS))
+        j = jax.jacfwd(lambda d: _laser_offset(rig.lasers, i, x_ref[i], d))(jnp.zeros(N_LAS))
+        return jnp.trace(j @ c @ j.T), c[2, 2] + c[3, 3]
+
+    pos, ang = jax.vmap(laser)(jnp.arange(rig.lasers.n))
+    return pos, ang, jnp.sum(w_dot), jnp.sum(w_spot)
+
+
+@dataclass
+class Prediction:
+    """A plan's predicted laser accuracy: per laser std at the working point (mm) and of the direction (rad)."""
+
+    position_std_mm: np.ndarray
+    direction_std_rad: np.ndarray
+    n_dots: int
+    n_spots: int
+
+    @property
+    def position_rms_mm(self) -> float:
+        return float(np.sqrt(np.mean(self.position_std_mm**2)))
+
+    @property
+    def direction_rms_deg(self) -> float:
+        return float(np.degrees(np.sqrt(np.mean(self.direction_std_rad**2))))
+
+    def to_json(self) -> dict:
+        return {
+            "position_rms_mm": self.position_rms_mm,
+            "direction_rms_deg": self.direction_rms_deg,
+            "position_std_mm": self.position_std_mm.tolist(),
+            "direction_std_deg": np.degrees(self.direction_std_rad).tolist(),
+            "dots": self.n_dots,
+            "spots": self.n_spots,
+        }
+
+
+_predict_jit = jax.jit(_predict, static_argnames=("n_v",))
+
+
+def _objective(u, scale, rig, T_bw, chess, pk, sigma, n_v, ref_pos, ref_ang, pw):
+    pos, ang, _, _ = _predict(scale * jnp.tanh(u), rig, T_bw, chess, pk, sigma, n_v)
+    return jnp.mean(ang / ref_ang) + pw * jnp.mean(pos / ref_pos)
+
+
+_objective_jit = jax.jit(_objective, static_argnames=("n_v",))
+_value_and_grad_jit = jax.jit(jax.value_and_grad(_objective), static_argnames=("n_v",))
+
+
+class _Compiled:
+    """A plan's fixed problem; the bound and its gradient are compiled once per problem size."""
+
+    def __init__(self, plan: Plan):
+        self.pk, self.T_bw, self.chess = _problem(plan)
+        self.scale = jnp.asarray(np.maximum(plan.scale, 1e-12))
+        self.n_v = plan.views.shape[0]
+        self.args = (plan.rig, self.T_bw, self.chess, self.pk, jnp.asarray(float(plan.noise)))
+
+    def predict(self, views):
+        return _predict_jit(views, *self.args, n_v=self.n_v)
+
+    def objective(self, u, ref_pos, ref_ang, pw):
+        return _objective_jit(u, self.scale, *self.args, self.n_v, ref_pos, ref_ang, pw)
+
+    def value_and_grad(self, u, ref_pos, ref_ang, pw):
+        return _value_and_grad_jit(u, self.scale, *self.args, self.n_v, ref_pos, ref_ang, pw)
+
+    def u_of(self, views: np.ndarray) -> jnp.ndarray:
+        x = np.clip(views / np.asarray(self.scale), -1.0 + 1e-9, 1.0 - 1e-9)
+        return jnp.asarray(np.arctanh(x))
+
+    def views_of(self, u) -> np.ndarray:
+        return np.asarray(self.scale * jnp.tanh(u))
+
+
+def predict(plan: Plan) -> Prediction:
+    """The predicted (Cramer-Rao) laser accuracy of a planned calibration."""
+    c = _Compiled(plan)
+    return _prediction(c, plan.views)
+
+
+def _prediction(c: _Compiled, views) -> Prediction:
+    pos, ang, nd, ns = c.predict(jnp.asarray(views, dtype=float))
+    return Prediction(np.sqrt(np.asarray(pos)), np.sqrt(np.asarray(ang)), int(nd), int(ns))
+
+
+@dataclass
+class DesignResult:
+    """The poses before and after, their predictions, and the objective at each accepted step."""
+
+    before: Plan
+    after: Plan
+    predicted_before: Prediction
+    predicted_after: Prediction
+    history: list[float]
+    timings: dict
+
+
+def optimise(
+    plan: Plan,
+    steps: int = 60,
+    learning_rate: float = 0.3,
+    position_weight: float = 0.5,
+    progress: bool = False,
+) -> DesignResult:
+    """Sensor poses within the plan's motion range that minimise the predicted laser error.
+
+    Adam on ``u`` (pose = range * tanh(u)), each step shortened until the objective,
+    re-evaluated at the new poses (visibility included), goes down; stops after
+    ``steps`` gradient evaluations or when no step length helps.
+    """
+    t0 = time.perf_counter()
+    c = _Compiled(plan)
+    u = c.u_of(plan.views)
+    pos0, ang0, _, _ = c.predict(c.scale * jnp.tanh(u))
+    ref_pos, ref_ang = jnp.maximum(pos0, 1e-30), jnp.maximum(ang0, 1e-30)
+    pw = jnp.asarray(float(position_weight))
+    f, grad = c.value_and_grad(u, ref_pos, ref_ang, pw)
+    t_compile = time.perf_counter() - t0
+    history = [float(f)]
+    m, v = jnp.zeros_like(u), jnp.zeros_like(u)
+    b1, b2 = 0.9, 0.999
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=steps, desc="design", unit="step")
+    lr = learning_rate
+    for k in range(1, steps + 1):
+        m = b1 * m + (1 - b1) * grad
+        v = b2 * v + (1 - b2) * grad**2
+        step = (m / (1 - b1**k)) / (jnp.sqrt(v / (1 - b2**k)) + 1e-12)
+        accepted = False
+        for _ in range(6):
+            u_new = u - lr * step
+            f_new = float(c.objective(u_new, ref_pos, ref_ang, pw))
+            if np.isfinite(f_new) and f_new < history[-1]:
+                accepted = True
+                break
+            lr *= 0.5
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(objective=f"{history[-1]:.3f}")
+        if not accepted:
+            break
+        u = u_new
+        lr = min(lr * 1.2, learning_rate)
+        f, grad = c.value_and_grad(u, ref_pos, ref_ang, pw)
+        history.append(float(f))
+    if bar is not None:
+        bar.close()
+    after = Plan(
+        plan.rig,
+        c.views_of(u),
+        plan.half_width,
+        plan.rotation_range,
+        plan.translation_range,
+        plan.noise,
+        plan.chess_poses,
+        plan.chess_board,
+    )
+    before_pred = _prediction(c, plan.views)
+    after_pred = _prediction(c, after.views)
+    timings = {"compile_s": t_compile, "total_s": time.perf_counter() - t0}
+    return DesignResult(plan, after, before_pred, after_pred, history, timings)
+
+
+# ----------------------------------------------------------------------------- confirmation, output
+
+
+def confirm(plan: Plan, trials: int, seed: int = 0, progress: bool = False) -> dict:
+    """Monte Carlo check of a plan: simulate and calibrate it ``trials`` times at its noise.
+
+    Returns the RMS over trials and lasers of the joint calibration's position error at
+    each laser's true working point (mm) and of its direction error (deg), and how many
+    calibrations converged.
+    """
+    from ._calibrate import calibrate, laser_errors
+    from ._simulate import box_scene, simulate
+
+    if trials < 1:
+        raise ValueError(f"trials must be at least 1, got {trials}")
+    scene = box_scene(plan.rig, plan.views, plan.half_width, n_chess_views=len(plan.chess_poses) or 12)
+    pos, ang, conv = [], [], 0
+    it = range(trials)
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(it, desc="confirm", unit="calibration")
+    for t in it:
+        obs, truth = simulate(scene, noise=plan.noise, seed=seed + t)
+        res = calibrate(usable_observations(obs))
+        conv += res.passes[-1].result.startswith("converged")
+        p, a = laser_errors(res.rig, truth.rig, _true_working_points(scene))
+        pos.append(p)
+        ang.append(a)
+    pos, ang = np.concatenate(pos), np.concatenate(ang)
+    return {
+        "trials": trials,
+        "converged": conv,
+        "position_rms_mm": float(np.sqrt(np.mean(pos**2))),
+        "direction_rms_deg": float(np.degrees(np.sqrt(np.mean(ang**2)))),
+    }
+
+
+def usable_observations(obs):
+    """``obs`` without the boards seen by fewer than 4 dots in a view (and without their spots), as predicted."""
+    import dataclasses
+
+    views = []
+    for v in obs.views:
+        keep = {b for b, (_, seen) in v.boards.items() if int(seen.sum()) >= MIN_DOTS}
+        boards = {b: (px, seen if b in keep else np.zeros_like(seen)) for b, (px, seen) in v.boards.items()}
+        views.append(dataclasses.replace(v, boards=boards, spots=[s for s in v.spots if s.board in keep]))
+    return dataclasses.replace(obs, views=views)
+
+
+def _true_working_points(scene: Scene) -> np.ndarray:
+    from ._simulate import visible_spots
+
+    n = scene.rig.lasers.n
+    acc, cnt = np.zeros((n, 3)), np.zeros(n)
+    for v in range(len(scene.box_poses)):
+        for laser, _, x, _ in visible_spots(scene, v):
+            acc[laser] += x
+            cnt[laser] += 1
+    pts = np.asarray(scene.rig.lasers.points)
+    return np.where(cnt[:, None] > 0, acc / np.maximum(cnt, 1)[:, None], pts)
+
+
+def _views_json(views: np.ndarray) -> list[dict]:
+    return [{"rvec_deg": np.degrees(v[:3]).tolist(), "t_mm": v[3:].tolist()} for v in views]
+
+
+def design_document(res: DesignResult, confirmed: dict | None = None) -> dict:
+    """The ``slcv-design/1`` document: the plan, the poses before and after, the predictions."""
+    p = res.before
+    return {
+        "format": "slcv-design/1",
+        "units": "mm",
+        "box_width_mm": 2.0 * p.half_width,
+        "noise_px": p.noise,
+        "motion_range": {
+            "rotation_deg": np.degrees(p.rotation_range).tolist(),
+            "translation_mm": p.translation_range.tolist(),
+        },
+        "views_frame": "T_box_cam per view: rotation vector (deg) and translation (mm) of the sensor in the box",
+        "views_before": _views_json(p.views),
+        "views_after": _views_json(res.after.views),
+        "predicted": {"before": res.predicted_before.to_json(), "after": res.predicted_after.to_json()},
+        "objective_history": res.history,
+        "confirmed": confirmed,
+        "timings": res.timings,
+    }
+
+
+def plot_design(res: DesignResult, path) -> Path:
+    """Per-laser predicted std before and after, and the sensor positions in the box (top view)."""
+    from ._plots import _plt
+
+    plt = _plt()
+    path = Path(path)
+    b, a = res.predicted_before, res.predicted_after
+    n = b.position_std_mm.size
+    x = np.arange(n)
+    fig, axs = plt.subplots(1, 3, figsize=(15, 4.5))
+    axs[0].bar(x - 0.2, np.degrees(b.direction_std_rad), 0.4, label=f"before (rms {b.direction_rms_deg:.3f} deg)")
+    axs[0].bar(x + 0.2, np.degrees(a.direction_std_rad), 0.4, label=f"after (rms {a.direction_rms_deg:.3f} deg)")
+    axs[0].set_ylabel("predicted direction std (deg)")
+    axs[1].bar(x - 0.2, b.position_std_mm, 0.4, label=f"before (rms {b.position_rms_mm:.3f} mm)")
+    axs[1].bar(x + 0.2, a.position_std_mm, 0.4, label=f"after (rms {a.position_rms_mm:.3f} mm)")
+    axs[1].set_ylabel("predicted position std at the working point (mm)")
+    for ax in axs[:2]:
+        ax.set_xlabel("laser")
+        ax.set_xticks(x)
+        ax.legend(fontsize=8)
+        ax.grid(alpha=0.3, axis="y")
+    ax = axs[2]
+    tr = res.before.translation_range
+    ax.plot([-tr[0], tr[0], tr[0], -tr[0], -tr[0]], [-tr[1], -tr[1], tr[1], tr[1], -tr[1]], "k:", lw=1)
+    lim = 1.4 * max(tr[0], tr[1], 1.0)
+    ax.set_xlim(-lim, lim)
+    ax.set_ylim(-lim, lim)
+    for views, style, name in ((res.before.views, "o", "before"), (res.after.views, "^", "after")):
+        t, yaw = views[:, 3:], views[:, 2]
+        ax.quiver(t[:, 0], t[:, 1], np.cos(yaw), np.sin(yaw), angles="xy", width=0.004, alpha=0.6)
+        ax.plot(t[:, 0], t[:, 1], style, ms=5, label=name)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x in the box (mm)")
+    ax.set_ylabel("y in the box (mm)")
+    ax.set_title("sensor positions and yaw (arrows); dotted: the motion range")
+    ax.legend(fontsize=8)
+    fig.suptitle(f"Experiment design: {res.before.views.shape[0]} views, noise {res.before.noise} px")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path

@@ -1,0 +1,73 @@
+"""Experiment design: the predicted bound against the calibration's own bound, its gradient, the optimiser."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import slcvjax as sj
+from slcvjax import _design, cli
+from slcvjax._simulate import box_scene, paper_rig, paper_views
+
+
+@pytest.fixture(scope="module")
+def plan():
+    views = paper_views(4)
+    scene = box_scene(paper_rig(3), views)
+    return scene, _design.Plan.from_scene(scene, views, noise=0.5)
+
+
+def test_prediction_equals_the_bound_of_the_simulated_calibration(plan):
+    scene, p = plan
+    pred = _design.predict(p)
+    obs, truth = sj.simulate(scene, noise=0.0, seed=0)
+    cr = sj.cramer_rao(truth, obs, 0.5)
+    # the same points are observed ...
+    assert pred.n_spots == sum(len(v.spots) for v in obs.views)
+    assert pred.n_dots == sum(int(s.sum()) for v in obs.views for _, s in v.boards.values())
+    # ... and the bound agrees (the rim pixels differ: evenly spread here, random there)
+    np.testing.assert_allclose(pred.position_std_mm, cr["position_std_mm"], rtol=5e-3)
+    np.testing.assert_allclose(pred.direction_std_rad, cr["direction_std_rad"], rtol=5e-3)
+
+
+def test_gradient_of_the_bound_matches_finite_differences(plan):
+    _, p = plan
+    c = _design._Compiled(p)
+    u = c.u_of(p.views)
+    pos, ang, _, _ = c.predict(c.scale * jnp.tanh(u))
+    args = (pos, ang, jnp.asarray(0.5))
+    f0, g = c.value_and_grad(u, *args)
+    assert float(f0) == pytest.approx(1.5, rel=1e-9)
+    eps = 1e-5
+    for i, j in [(1, 2), (2, 3), (3, 0), (1, 5)]:  # yaw, x, roll, z of a few views
+        up = float(c.value_and_grad(u.at[i, j].add(eps), *args)[0])  # one compilation for both
+        dn = float(c.value_and_grad(u.at[i, j].add(-eps), *args)[0])
+        fd = (up - dn) / (2 * eps)
+        assert float(g[i, j]) == pytest.approx(fd, rel=1e-4, abs=1e-7)
+    assert float(jnp.max(jnp.abs(g))) > 1e-3
+
+
+def test_optimised_poses_stay_in_range_and_lower_the_bound(plan):
+    _, p = plan
+    res = _design.optimise(p, steps=6)
+    assert len(res.history) >= 2
+    assert all(b < a for a, b in zip(res.history, res.history[1:], strict=False))
+    assert np.all(np.abs(res.after.views) <= p.scale + 1e-12)
+    assert res.predicted_after.direction_rms_deg < res.predicted_before.direction_rms_deg
+    doc = _design.design_document(res)
+    assert doc["format"] == "slcv-design/1" and len(doc["views_after"]) == 4
+
+
+@pytest.mark.parametrize(
+    "argv, expected",
+    [
+        (["--rotation", "3,3"], "--rotation"),
+        (["--translation", "a,b,c"], "--translation"),
+        (["--views", "0"], "--views"),
+        (["--box", "-1"], "--box"),
+    ],
+)
+def test_design_command_bad_options(tmp_path, capsys, argv, expected):
+    assert cli.main(["design", *argv, "--out", str(tmp_path / "d")]) == 2
+    err = capsys.readouterr().err
+    assert expected in err and "Traceback" not in err
+    assert not (tmp_path / "d").exists()
