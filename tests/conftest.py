@@ -1,6 +1,13 @@
-import jax
-import numpy as np
-import pytest
+import os
+from pathlib import Path
+
+# one persistent compilation cache for the test processes (two xdist workers, the notebooks'
+# kernels): a computation compiled in one is loaded by the others
+os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(Path(__file__).parent.parent / ".pytest_cache" / "jax"))
+
+import jax  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
 
 import slcvjax  # noqa: F401  (enables float64)
 
