@@ -24,6 +24,7 @@ its value at the start, plus (``position_weight``) the same for the position var
 a direction-only design may trade position for direction.
 """
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -351,16 +352,7 @@ def optimise(
         history.append(float(f))
     if bar is not None:
         bar.close()
-    after = Plan(
-        plan.rig,
-        c.views_of(u),
-        plan.half_width,
-        plan.rotation_range,
-        plan.translation_range,
-        plan.noise,
-        plan.chess_poses,
-        plan.chess_board,
-    )
+    after = dataclasses.replace(plan, views=c.views_of(u))
     before_pred = _prediction(c, plan.views)
     after_pred = _prediction(c, after.views)
     timings = {"compile_s": t_compile, "total_s": time.perf_counter() - t0}
@@ -407,8 +399,6 @@ def confirm(plan: Plan, trials: int, seed: int = 0, progress: bool = False) -> d
 
 def usable_observations(obs):
     """``obs`` without the boards seen by fewer than 4 dots in a view (and without their spots), as predicted."""
-    import dataclasses
-
     views = []
     for v in obs.views:
         keep = {b for b, (_, seen) in v.boards.items() if int(seen.sum()) >= MIN_DOTS}
