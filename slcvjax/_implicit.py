@@ -15,7 +15,7 @@ so its Hessian and its mixed derivative in its own data are small dense blocks,
 scattered into the same Schur form as the normal equations and solved by eliminating
 the pose blocks.  The reflection point's Newton solve gives exact second derivatives
 here (:func:`._newton.exact_second_order`).  One term is left out: the rim residual's
-normalisation ``|dF/duv|``, which the LM holds constant in its Jacobian, is held
+normalisation ``|dF/duv|``, which the LM holds constant within a solve, is held
 constant here too (its variation enters multiplied by the rim residuals).
 
 Frozen parameters stay fixed (their derivative is zero).  The API:
@@ -106,8 +106,9 @@ def _observation_blocks(params: Params, pk: Packed, loss: str, scale, kind_weigh
         return lambda v, *args: jax.grad(cost)(v[:N_L], v[N_L:], *args)
 
     def rim_grad(v):
-        # the LM's rim residual F / |dF/duv| holds |dF/duv| constant in its Jacobian but
-        # evaluates it at the current estimate: the gradient below does the same, and its
+        # the LM's rim residual F / |dF/duv| holds |dF/duv| constant within a solve, at its
+        # value where the solve started (at a solution: the solution itself, to within the
+        # last pass's movement); the gradient below holds it at the current estimate, and its
         # derivative then follows |dF/duv| exactly
         z, px = v[:N_L], v[N_L : N_L + 2]
         c0, m0 = _lm._cm(cam, mir, z)

@@ -23,7 +23,10 @@ block-diagonal (6x6 per pose) the damped step solves the reduced system
 whose cost grows linearly with the number of views.  The rim residual is the signed
 first-order (Sampson) distance of a rim pixel to the projected rim curve, in pixels:
 ``F(uv) / |dF/duv|`` with ``F = |X(uv) - C| - r``, ``X`` the pixel's ray on the rim's
-plane and ``C`` the rim's centre.
+plane and ``C`` the rim's centre.  Within one solve the normalisation ``|dF/duv|`` is held
+at its value at the start, so that the cost the steps are judged by is the function
+whose Jacobian they use (the global rows are gathered into a dense matrix, so that
+``A`` and ``g_g`` are matrix products).
 
 Robust loss (dots and spots): Huber or Cauchy on each observation's 2D residual norm
 with scale ``c`` px, by iteratively reweighted least squares inside LM.  The loop is one
@@ -129,10 +132,15 @@ def rim_distance(cam: Camera, mir: ConeMirror, uv: Float[Array, "2"]) -> tuple[F
     return safe_div(val, scale), ok & (scale > 0.0)
 
 
-def _rim(d, cam, mir, uv):
+def _rim(d, cam, mir, uv, norm):
     c, m = _cm(cam, mir, d)
-    r, ok = rim_distance(c, m, uv)
-    return r[None], ok
+    val, ok = rim_value(c, m, uv)
+    return safe_div(val, norm)[None], ok & (norm > 0.0)
+
+
+def rim_norms(rig: Rig, pk: Packed) -> Float[Array, " R"]:
+    """Each rim pixel's ``|dF/duv|`` (:func:`rim_scale`) on ``rig``: the rim rows' normalisation."""
+    return jax.vmap(lambda uv: rim_scale(rig.camera, rig.mirror, uv))(pk.rim_pixels)
 
 
 def _chess(d, cam, R, t, xb, px):
@@ -160,7 +168,14 @@ class Rows(NamedTuple):
 KIND_NAMES = ("dot", "spot", "rim", "chess")
 
 
-def _rows(params: Params, pk: Packed, with_jac: bool = True) -> Rows:
+def _rows(params: Params, pk: Packed, with_jac: bool = True, rim_norm: Array | None = None) -> Rows:
+    """Every residual row with its local Jacobian.
+
+    ``rim_norm``: the rim rows' normalisations (:func:`rim_norms`), held as constants; by
+    default those of ``params`` itself, so that the rim rows are the distances
+    :func:`rim_distance` (the Jacobian then still holds them constant).  The LM passes the
+    normalisation at its start, so that its cost and its Jacobian describe one function.
+    """
     rig = params.rig
     cam, mir, las = rig.camera, rig.mirror, rig.lasers
     g = rig.tangent_dim
@@ -205,7 +220,8 @@ def _rows(params: Params, pk: Packed, with_jac: bool = True) -> Rows:
         )
     )
     # rim
-    r, j, ok = jax.vmap(lambda uv: lin(_rim, N_CM, cam, mir, uv))(pk.rim_pixels)
+    norm = jax.lax.stop_gradient(rim_norms(rig, pk) if rim_norm is None else rim_norm)
+    r, j, ok = jax.vmap(lambda uv, s: lin(_rim, N_CM, cam, mir, uv, s))(pk.rim_pixels, norm)
     n = r.shape[0]
     jg = jnp.concatenate([j, jnp.zeros((n, 1, N_LAS))], axis=2)
     gi = jnp.broadcast_to(jnp.concatenate([cm_idx, jnp.full(N_LAS, g)]), (n, 1, N_CM + N_LAS))
@@ -319,12 +335,12 @@ def normal_equations(rows: Rows, w, g: int, nb: int, gmask, pmask) -> Normal:
     jg = rows.jg * jnp.concatenate([gmask, jnp.zeros(1)])[rows.gidx]
     jp = rows.jp * jnp.concatenate([pmask, jnp.zeros(1)])[rows.pidx][:, None]
     wr = w * rows.r
-    A = (
-        jnp.zeros((g + 1, g + 1))
-        .at[rows.gidx[:, :, None], rows.gidx[:, None, :]]
-        .add(w[:, None, None] * jg[:, :, None] * jg[:, None, :])[:g, :g]
-    )
-    bg = jnp.zeros(g + 1).at[rows.gidx].add(wr[:, None] * jg)[:g]
+    # the global columns as one dense (rows, G) matrix: its products are matrix products,
+    # three times faster on a CPU than scattering each row's 18 x 18 outer product
+    n = rows.r.shape[0]
+    J = jnp.zeros((n, g + 1)).at[jnp.arange(n)[:, None], rows.gidx].add(jg)[:, :g]
+    A = (J * w[:, None]).T @ J
+    bg = J.T @ wr
     D = jnp.zeros((nb + 1, 6, 6)).at[rows.pidx].add(w[:, None, None] * jp[:, :, None] * jp[:, None, :])[:nb]
     B = (
         jnp.zeros((nb + 1, g + 1, 6))
@@ -410,8 +426,8 @@ class LMResult(NamedTuple):
     result: Int[Array, ""]
 
 
-def _cost(params, pk, loss, scale, kind_weight):
-    rows = _rows(params, pk, with_jac=False)
+def _cost(params, pk, loss, scale, kind_weight, rim_norm=None):
+    rows = _rows(params, pk, with_jac=False, rim_norm=rim_norm)
     _, c = robust_weights(rows, n_observations(pk), loss, scale, kind_weight)
     return c
 
@@ -439,8 +455,13 @@ def solve(
     scale = jnp.asarray(scale, dtype=float)
     kw = jnp.ones(4) if kind_weight is None else jnp.asarray(kind_weight, dtype=float)
 
+    # the rim rows' normalisation is held at its value at the start: with it varying, the
+    # cost would not be the function whose Jacobian the steps use, and near the minimum
+    # every step was rejected (measured: 20-30 wasted linearisations per pass)
+    rim_norm = rim_norms(params.rig, pk)
+
     def linearise(p):
-        rows = _rows(p, pk)
+        rows = _rows(p, pk, rim_norm=rim_norm)
         w, c = robust_weights(rows, n_obs, loss, scale, kw)
         return normal_equations(rows, w, g, nb, masks.glob, masks.blocks), c
 
@@ -452,7 +473,7 @@ def solve(
         c0 = jnp.where(it == 0, cost, c0)
         dg, dp = schur_step(ne, lam)
         cand = p.retract(dg, dp)
-        c_new = _cost(cand, pk, loss, scale, kw)
+        c_new = _cost(cand, pk, loss, scale, kw, rim_norm)
         ok = jnp.isfinite(c_new) & (c_new < cost)
         small = (cost - c_new) <= rtol * cost
         tiny = jnp.maximum(jnp.max(jnp.abs(dg)), jnp.max(jnp.abs(dp), initial=0.0)) < 1e-12
