@@ -11,8 +11,11 @@ solves the same least-squares problem (plain squares, no robust loss):
   jitted residual function (the baseline);
 * ``scipy_jac``: the same with the project's dense Jacobian (``jax.jacfwd``).
 
-The scaling part times the Schur LM over more views (one compilation each).  Results are
-printed and written as JSON with the machine's description.
+The scaling part times the Schur LM over more views (one compilation each).  The batch
+part times whole calibrations (``calibrate``: staged pipeline, every joint pass, the
+covariance) of ``--batch`` simulated preset observation sets one after another: the first
+compiles, the others are what one more calibration in a batch costs (goal: 0.5 s on 2
+cores).  Results are printed and written as JSON with the machine's description.
 """
 
 import argparse
@@ -27,7 +30,7 @@ from bench_forward import machine
 from scipy.optimize import least_squares
 
 from slcvjax import _lm
-from slcvjax._calibrate import _arrays
+from slcvjax._calibrate import _arrays, calibrate
 from slcvjax._problem import pack, stack_poses
 from slcvjax._simulate import make_scene, simulate
 
@@ -69,10 +72,39 @@ def time_schur(start, pk, masks):
     }
 
 
+def time_batch(n: int) -> dict:
+    """Whole calibrations of ``n`` preset observation sets (0.5 px, seeds 100..): first and the rest."""
+    scene = make_scene("paper")
+    obs = [simulate(scene, noise=0.5, seed=100 + s)[0] for s in range(n)]
+    times, staged_s = [], []
+    for o in obs:
+        t0 = time.perf_counter()
+        res = calibrate(o)
+        times.append(time.perf_counter() - t0)
+        staged_s.append(res.timings["staged_s"])
+    rest = np.asarray(times[1:])
+    r = {
+        "calibrations": n,
+        "first_s": times[0],
+        "median_s": float(np.median(rest)),
+        "mean_s": float(np.mean(rest)),
+        "max_s": float(np.max(rest)),
+        "staged_median_s": float(np.median(staged_s[1:])),
+    }
+    print(
+        f"batch of {n} calibrations (staged + joint + covariance): first {r['first_s']:.1f} s (compiling), "
+        f"then median {r['median_s']:.3f} s, mean {r['mean_s']:.3f} s, max {r['max_s']:.3f} s "
+        f"(staged median {r['staged_median_s']:.3f} s)",
+        flush=True,
+    )
+    return r
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--views", default="16,64,256")
     ap.add_argument("--no-scipy", action="store_true")
+    ap.add_argument("--batch", type=int, default=12, help="whole calibrations to time (0: none)")
     ap.add_argument("--out", default="benchmarks/results/calibrate.json")
     args = ap.parse_args()
     out = {"benchmark": "calibrate", "machine": machine()}
@@ -130,6 +162,8 @@ def main() -> None:
             flush=True,
         )
     out["scaling"] = scaling
+    if args.batch > 1:
+        out["batch"] = time_batch(args.batch)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(out, indent=1))
     print(f"wrote {args.out}")

@@ -9,7 +9,14 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-from ._calibrate import CalibrationResult, calibrate, cramer_rao, laser_errors, to_calibration  # noqa: E402
+from ._calibrate import (  # noqa: E402
+    CalibrationResult,
+    calibrate,
+    calibrate_many,
+    cramer_rao,
+    laser_errors,
+    to_calibration,
+)
 from ._camera import (  # noqa: E402
     Camera,
     distort,
@@ -79,6 +86,7 @@ __all__ = [
     "Sensitivity",
     "back_project",
     "calibrate",
+    "calibrate_many",
     "cramer_rao",
     "differentiable_solution",
     "distort",

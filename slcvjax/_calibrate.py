@@ -14,6 +14,7 @@ It returns the joint result with its covariance, and the staged result beside it
 """
 
 import dataclasses
+import functools
 import time
 from dataclasses import dataclass, field
 
@@ -29,6 +30,7 @@ from ._lm import (
     KIND_NAMES,
     RESULT_NAMES,
     Covariance,
+    LMResult,
     Masks,
     Params,
     block_costs_of_rows,
@@ -39,14 +41,17 @@ from ._lm import (
     solve,
 )
 from ._pose import Pose
-from ._problem import Packed, pack, stack_poses
+from ._problem import Packed, pack, stack_poses, unstack_poses
 from ._rig import Rig, project_board_points, project_rim, project_spots
 from ._staged import CalibrationError, Staged, _flipped, board_poses, fit_lasers, staged
 
 _solve = jax.jit(solve, static_argnames=("loss", "max_steps"))
 # The passes before the last only have to bring the next one into its basin; the last
-# converges to round-off.
-_RTOL_START = 1e-6
+# converges to round-off.  The flipped twins are refined only far enough to compare
+# their fit with the poses they may replace (the final pass refines the winners), and
+# the first pass only far enough to decide the boards' flips again.
+_RTOL_START = 1e-5
+_RTOL_TWIN = 1e-4
 _RTOL_FINAL = 1e-10
 _covariance = jax.jit(covariance, static_argnames=("loss",))
 _rows = jax.jit(residual_rows)
@@ -60,14 +65,19 @@ def _arrays(pk: Packed) -> Packed:
     return dataclasses.replace(pk, pose_keys=(), chess_keys=())
 
 
+@jax.jit
+def _observation_norms(params: Params, arr: Packed):
+    rows = residual_rows(params, arr)
+    n_obs = n_observations(arr)
+    r2 = jax.ops.segment_sum(rows.r**2, rows.obs, num_segments=n_obs)
+    kind = jax.ops.segment_max(rows.kind, rows.obs, num_segments=n_obs)
+    ok = jax.ops.segment_min(rows.valid.astype(int), rows.obs, num_segments=n_obs) > 0
+    return jnp.sqrt(r2), kind, ok
+
+
 def _per_observation(params: Params, pk: Packed) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per observation: its 2D residual norm (px), its kind and whether it is valid."""
-    rows = _rows(params, _arrays(pk))
-    n_obs = int(rows.obs.max()) + 1 if rows.r.size else 0
-    r2 = np.asarray(jax.ops.segment_sum(rows.r**2, rows.obs, num_segments=n_obs))
-    kind = np.asarray(jax.ops.segment_max(rows.kind, rows.obs, num_segments=n_obs))
-    ok = np.asarray(jax.ops.segment_min(rows.valid.astype(int), rows.obs, num_segments=n_obs)) > 0
-    return np.sqrt(r2), kind, ok
+    return tuple(np.asarray(a) for a in _observation_norms(params, _arrays(pk)))
 
 
 def kind_sigmas(params: Params, pk: Packed, min_count: int = 10) -> np.ndarray:
@@ -160,95 +170,258 @@ def calibrate(
             robustly from the residuals.
         max_steps: the most LM linearisations per pass.
     """
-    t0 = time.perf_counter()
-    st = staged(obs, camera=camera, pk=pack(obs))
-    pk = st.packed  # spots without a board have one now
-    t_staged = time.perf_counter() - t0
-    if camera is not None and not st.chess_poses:
-        st.chess_poses = {}
-    chess = _chess_start(obs, pk, st.camera, st.chess_poses)
-    if not chess:
-        chess_stack = Pose(jnp.zeros((0, 3, 3)), jnp.zeros((0, 3)))
-        if camera is None:
-            raise CalibrationError("calibration_views: no direct views and no camera given")
-    else:
-        chess_stack = stack_poses(chess)
-    params = Params(Rig(st.camera, st.mirror, st.lasers), stack_poses(st.poses), chess_stack)
-    masks = make_masks(params, set(freeze))
-    arr = _arrays(pk)
-    passes = []
+    return _calibrate_lockstep([obs], camera, freeze, loss, loss_scale, max_steps, _solve_loop)[0]
 
-    def run(name, p, m, scale, kind_weight=None, rtol=_RTOL_START):
-        res = _solve(
-            p,
-            arr,
-            m,
-            loss=loss,
-            scale=scale,
-            max_steps=max_steps,
-            rtol=rtol,
-            kind_weight=jnp.asarray([1.0] * 4 if kind_weight is None else kind_weight, dtype=float),
-        )
-        passes.append(
-            JointPass(
-                name,
-                int(res.steps),
-                RESULT_NAMES[int(res.result)],
-                float(res.initial_cost),
-                float(res.cost),
-                float(scale),
+
+def resolve_batch(batch: str) -> str:
+    """``loop`` or ``vmap`` for :func:`calibrate_many`'s ``batch`` (``auto``: ``loop`` on a CPU)."""
+    if batch == "auto":
+        return "loop" if jax.default_backend() == "cpu" else "vmap"
+    if batch not in ("loop", "vmap"):
+        raise ValueError(f"batch: expected auto, loop or vmap, got {batch!r}")
+    return batch
+
+
+def calibrate_many(
+    observations: list[Observations],
+    batch: str = "auto",
+    progress: bool = False,
+    **kwargs,
+) -> list[CalibrationResult]:
+    """Calibrate several observation sets (Monte Carlo trials, say) with :func:`calibrate`'s method.
+
+    ``batch``:
+
+    * ``loop``: one calibration after another, each through the compiled solves (fastest
+      on a CPU, where a batch would wait for its slowest trial);
+    * ``vmap``: every trial in lockstep, each LM pass of all trials one ``vmap``-ped solve
+      whose trial axis is sharded over all JAX devices (:func:`jax.devices`); the host
+      steps between the passes run trial by trial.  Sets of the same sizes share one
+      compilation; the results equal ``loop``'s to round-off;
+    * ``auto``: ``vmap`` where the default device is an accelerator, ``loop`` on a CPU.
+
+    ``kwargs`` are :func:`calibrate`'s (``camera``, ``freeze``, ``loss``, ...).  With
+    ``progress`` a bar counts calibrations (``loop``) or passes (``vmap``).
+    """
+    kw = dict(camera=None, freeze=(), loss="huber", loss_scale=None, max_steps=200) | kwargs
+    args = (kw["camera"], kw["freeze"], kw["loss"], kw["loss_scale"], kw["max_steps"])
+    batch = resolve_batch(batch)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(observations), desc="calibrations", unit="calibration")
+    try:
+        if batch == "loop":
+            out = []
+            for o in observations:
+                out.append(_calibrate_lockstep([o], *args, _solve_loop)[0])
+                if bar is not None:
+                    bar.update(1)
+            return out
+        return _calibrate_lockstep(observations, *args, _solve_vmap, bar=bar)
+    finally:
+        if bar is not None:
+            bar.close()
+
+
+def _kind_weight(kind_weight) -> jnp.ndarray:
+    return jnp.asarray([1.0] * 4 if kind_weight is None else kind_weight, dtype=float)
+
+
+def _solve_loop(jobs: list[tuple], loss: str, max_steps: int) -> list[LMResult]:
+    """Each job ``(params, arr, masks, scale, kind_weight, rtol)`` through the compiled solve."""
+    return [
+        _solve(p, a, m, loss=loss, scale=sc, max_steps=max_steps, rtol=rt, kind_weight=_kind_weight(kw))
+        for p, a, m, sc, kw, rt in jobs
+    ]
+
+
+@functools.partial(jax.jit, static_argnames=("loss", "max_steps"))
+def _solve_batched(params, arr, masks, scale, kind_weight, rtol, loss, max_steps):
+    def one(p, a, m, sc, kw, rt):
+        return solve(p, a, m, loss=loss, scale=sc, max_steps=max_steps, rtol=rt, kind_weight=kw)
+
+    return jax.vmap(one)(params, arr, masks, scale, kind_weight, rtol)
+
+
+def _trial_sharding(n: int):
+    """``(padded size, sharding)`` for a trial axis of ``n`` over all devices (None for one)."""
+    devices = jax.devices()
+    if len(devices) == 1:
+        return n, None
+    mesh = jax.sharding.Mesh(np.asarray(devices), ("trials",))
+    return -(-n // len(devices)) * len(devices), jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("trials"))
+
+
+def _solve_vmap(jobs: list[tuple], loss: str, max_steps: int, size: int | None = None) -> list[LMResult]:
+    """The jobs as ``vmap``-ped solves, one per group of equal sizes, sharded over the devices.
+
+    Each group is padded to ``size`` (the number of trials; and to a multiple of the
+    device count) by repeating its last job, so that every pass of a lockstep
+    calibration reuses one compilation.
+    """
+    shapes = [str(jax.tree_util.tree_map(lambda x: jnp.shape(x), (p, a, m))) for p, a, m, *_ in jobs]
+    out: list = [None] * len(jobs)
+    for key in dict.fromkeys(shapes):
+        idx = [i for i, k in enumerate(shapes) if k == key]
+        n, sharding = _trial_sharding(max(size or 0, len(idx)))
+        take = idx + [idx[-1]] * (n - len(idx))
+        cols = list(zip(*[jobs[i] for i in take], strict=True))
+        p, a, m = (jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *c) for c in cols[:3])
+        sc = jnp.asarray(cols[3], dtype=float)
+        kw = jnp.stack([_kind_weight(k) for k in cols[4]])
+        rt = jnp.asarray(cols[5], dtype=float)
+        batch = (p, a, m, sc, kw, rt)
+        if sharding is not None:
+            batch = jax.device_put(batch, sharding)
+        res = _solve_batched(*batch, loss=loss, max_steps=max_steps)
+        for j, i in enumerate(idx):
+            out[i] = jax.tree_util.tree_map(lambda x, j=j: x[j], res)
+    return out
+
+
+class _Trial:
+    """One calibration's state between the passes of :func:`_calibrate_lockstep`."""
+
+    def __init__(self, obs, camera, freeze, t0):
+        self.obs, self.t0 = obs, t0
+        st = staged(obs, camera=camera, pk=pack(obs))
+        self.st, self.pk = st, st.packed  # spots without a board have one now
+        self.t_staged = time.perf_counter() - t0
+        if camera is not None and not st.chess_poses:
+            st.chess_poses = {}
+        chess = _chess_start(obs, self.pk, st.camera, st.chess_poses)
+        if not chess:
+            chess_stack = Pose(jnp.zeros((0, 3, 3)), jnp.zeros((0, 3)))
+            if camera is None:
+                raise CalibrationError("calibration_views: no direct views and no camera given")
+        else:
+            chess_stack = stack_poses(chess)
+        self.params = Params(Rig(st.camera, st.mirror, st.lasers), stack_poses(st.poses), chess_stack)
+        self.masks = make_masks(self.params, set(freeze))
+        self.mask_a = make_masks(self.params, set(freeze) | {"lasers"})
+        self.arr = _arrays(self.pk)
+        self.passes: list[JointPass] = []
+        self.scale = 1.0
+
+
+def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, solver, bar=None):
+    """:func:`calibrate`'s passes for every observation set in step; ``solver`` runs a pass's solves."""
+    freeze = set(freeze)
+    trials = [_Trial(o, camera, freeze, time.perf_counter()) for o in obs_list]
+    size = len(trials)
+
+    def run(name, chosen, params, masks, scales, kind_weight=None, rtol=_RTOL_START):
+        jobs = [(params[i], trials[i].arr, masks[i], scales[i], kind_weight, rtol) for i in chosen]
+        kwargs = {"size": size} if solver is _solve_vmap else {}
+        for i, res in zip(chosen, solver(jobs, loss, max_steps, **kwargs), strict=True):
+            tr = trials[i]
+            tr.passes.append(
+                JointPass(
+                    name,
+                    int(res.steps),
+                    RESULT_NAMES[int(res.result)],
+                    float(res.initial_cost),
+                    float(res.cost),
+                    float(scales[i]),
+                )
             )
-        )
-        return res.params
+            tr.params = res.params
+        if bar is not None:
+            bar.set_postfix_str(name.split(":")[0])
+
+    every = list(range(size))
+
+    def scale_of(tr, floor):
+        return loss_scale or 3.0 * max(robust_sigma(tr.params, tr.pk), floor)
 
     # A: geometry without the lasers
-    mask_a = make_masks(params, set(freeze) | {"lasers"})
-    sig = robust_sigma(params, pk)
-    params = run("A: camera, mirror, poses", params, mask_a, loss_scale or 3.0 * max(sig, 0.1), [1.0, 0.0, 1.0, 1.0])
-    # the boards' flips decided again on the refined geometry, then A once more
+    run(
+        "A: camera, mirror, poses",
+        every,
+        [tr.params for tr in trials],
+        [tr.mask_a for tr in trials],
+        [scale_of(tr, 0.1) for tr in trials],
+        [1.0, 0.0, 1.0, 1.0],
+        # only far enough to decide the boards' flips again
+        rtol=_RTOL_TWIN if "poses" not in freeze else _RTOL_START,
+    )
+    # the boards' flips decided again on the refined geometry, then A once more where any
+    # board turned (otherwise pass A's poses already fit the dots on this geometry)
     if "poses" not in freeze:
-        poses, _ = board_poses(params.rig.camera, params.rig.mirror, pk, start=params.poses)
-        params = Params(params.rig, stack_poses(poses), params.chess)
-        sig = robust_sigma(params, pk)
-        params = run("A2: after re-flipping", params, mask_a, loss_scale or 3.0 * max(sig, 0.1), [1.0, 0.0, 1.0, 1.0])
+        again = []
+        for i, tr in enumerate(trials):
+            p = tr.params
+            poses, _ = board_poses(p.rig.camera, p.rig.mirror, tr.pk, start=p.poses)
+            if np.any(_turned(stack_poses(poses), p.poses)):
+                tr.params = Params(p.rig, stack_poses(poses), p.chess)
+                again.append(i)
+        if again:
+            run(
+                "A2: after re-flipping",
+                again,
+                [tr.params for tr in trials],
+                [tr.mask_a for tr in trials],
+                [scale_of(tr, 0.1) if i in again else 1.0 for i, tr in enumerate(trials)],
+                [1.0, 0.0, 1.0, 1.0],
+            )
     # B: lasers refitted, then everything
     if "lasers" not in freeze:
-        lasers, rep = fit_lasers(
-            params.rig.camera,
-            params.rig.mirror,
-            pk,
-            [Pose(params.poses.R[k], params.poses.t[k]) for k in range(pk.n_poses)],
-            obs.n_lasers,
-        )
-        params = Params(Rig(params.rig.camera, params.rig.mirror, lasers), params.poses, params.chess)
-    sig = robust_sigma(params, pk)
-    params = run("B: joint", params, masks, loss_scale or 3.0 * max(sig, 0.05))
+        for tr in trials:
+            p = tr.params
+            lasers, _ = fit_lasers(p.rig.camera, p.rig.mirror, tr.pk, unstack_poses(p.poses), tr.obs.n_lasers)
+            tr.params = Params(Rig(p.rig.camera, p.rig.mirror, lasers), p.poses, p.chess)
+    run(
+        "B: joint",
+        every,
+        [tr.params for tr in trials],
+        [tr.masks for tr in trials],
+        [scale_of(tr, 0.05) for tr in trials],
+    )
     # boards whose flipped twin (refined with dots and spots, the rig held) fits better are swapped
-    sig = robust_sigma(params, pk)
-    scale = loss_scale or 3.0 * max(sig, 0.05)
-    if "poses" not in freeze and pk.n_poses:
-        params, n_flipped = _reflip_with_spots(params, arr, masks, loss, scale, max_steps)
-        if n_flipped:
-            passes[-1].result += f"; {n_flipped} board pose(s) flipped after it"
+    for tr in trials:
+        tr.scale = scale_of(tr, 0.05)
+    if "poses" not in freeze:
+        flip = [i for i, tr in enumerate(trials) if tr.pk.n_poses]
+        twins = {i: _twin(trials[i].params, trials[i].arr, trials[i].masks) for i in flip}
+        jobs = [(twins[i][0], trials[i].arr, twins[i][1], trials[i].scale, None, _RTOL_TWIN) for i in flip]
+        kwargs = {"size": size} if solver is _solve_vmap else {}
+        for i, res in zip(flip, solver(jobs, loss, max_steps, **kwargs), strict=True):
+            tr = trials[i]
+            tr.params, n_flipped = _keep_better(tr.params, res.params, tr.arr, loss, tr.scale)
+            if n_flipped:
+                tr.passes[-1].result += f"; {n_flipped} board pose(s) flipped after it"
     # C: final pass at the re-estimated scale.  Every kind keeps weight 1: weighting each by
     # its own noise (the rim's is larger in rendered images) made the lasers worse from images
     # (benchmarks/images_vs_file.py), where the dots' errors are mostly systematic
-    params = run("C: joint (final)", params, masks, scale, rtol=_RTOL_FINAL)
-    cov = _covariance(params, arr, masks, loss, scale, kind_weight=jnp.ones(4, dtype=float))
-    sigmas = kind_sigmas(params, pk)
-    t_total = time.perf_counter() - t0
-    return CalibrationResult(
-        params,
-        st,
-        pk,
-        masks,
-        cov,
-        loss,
-        float(scale),
-        passes,
-        {"staged_s": t_staged, "total_s": t_total},
-        dict(zip(KIND_NAMES, sigmas.tolist(), strict=True)),
+    run(
+        "C: joint (final)",
+        every,
+        [tr.params for tr in trials],
+        [tr.masks for tr in trials],
+        [tr.scale for tr in trials],
+        rtol=_RTOL_FINAL,
     )
+    out = []
+    for tr in trials:
+        cov = _covariance(tr.params, tr.arr, tr.masks, loss, tr.scale, kind_weight=jnp.ones(4, dtype=float))
+        sigmas = kind_sigmas(tr.params, tr.pk)
+        out.append(
+            CalibrationResult(
+                tr.params,
+                tr.st,
+                tr.pk,
+                tr.masks,
+                cov,
+                loss,
+                float(tr.scale),
+                tr.passes,
+                {"staged_s": tr.t_staged, "total_s": time.perf_counter() - tr.t0},
+                dict(zip(KIND_NAMES, sigmas.tolist(), strict=True)),
+            )
+        )
+    return out
 
 
 _costs_of_rows = jax.jit(block_costs_of_rows, static_argnames=("n_obs", "n_blocks", "loss"))
@@ -259,8 +432,8 @@ def _block_costs(params: Params, arr: Packed, loss: str, scale: float):
     return _costs_of_rows(_rows(params, arr), n_observations(arr), params.n_blocks, loss, scale)
 
 
-def _reflip_with_spots(params: Params, arr: Packed, masks: Masks, loss: str, scale: float, max_steps: int):
-    """Try every board pose's flipped twin with the rig held fixed; keep the twins that fit better."""
+def _twin(params: Params, arr: Packed, masks: Masks) -> tuple[Params, Masks]:
+    """Every board pose's flipped twin, and the masks that refine the twins with the rig held."""
     R, t = np.asarray(params.poses.R), np.asarray(params.poses.t)
     n_p = R.shape[0]
     xb = np.zeros((n_p, 1, 3))
@@ -271,8 +444,12 @@ def _reflip_with_spots(params: Params, arr: Packed, masks: Masks, loss: str, sca
     R2, t2 = _flipped(R, t, xb, np.ones((n_p, 1)))
     twin = Params(params.rig, Pose(jnp.asarray(R2), jnp.asarray(t2)), params.chess)
     hold = Masks(jnp.zeros_like(masks.glob), jnp.concatenate([masks.blocks[:n_p], jnp.zeros(params.chess.t.shape[0])]))
-    kw = jnp.ones(4, dtype=float)  # the arguments' types as in calibrate()'s passes: one compilation
-    twin = _solve(twin, arr, hold, loss=loss, scale=scale, max_steps=max_steps, rtol=_RTOL_START, kind_weight=kw).params
+    return twin, hold
+
+
+def _keep_better(params: Params, twin: Params, arr: Packed, loss: str, scale: float) -> tuple[Params, int]:
+    """``params`` with each board pose whose refined twin fits better swapped; how many turned."""
+    n_p = params.poses.t.shape[0]
     c_now = np.asarray(_block_costs(params, arr, loss, scale))[:n_p]
     c_twin = np.asarray(_block_costs(twin, arr, loss, scale))[:n_p]
     better = c_twin < c_now - 1e-9
@@ -282,8 +459,13 @@ def _reflip_with_spots(params: Params, arr: Packed, masks: Masks, loss: str, sca
     poses = Pose(
         jnp.where(b[:, None, None], twin.poses.R, params.poses.R), jnp.where(b[:, None], twin.poses.t, params.poses.t)
     )
-    turned = np.sum(np.asarray(twin.poses.R)[:, :, 2] * R[:, :, 2], axis=1) < np.cos(np.radians(10.0))
-    return Params(params.rig, poses, params.chess), int(np.sum(better & turned))
+    return Params(params.rig, poses, params.chess), int(np.sum(better & _turned(twin.poses, params.poses)))
+
+
+def _turned(a: Pose, b: Pose, degrees: float = 10.0) -> np.ndarray:
+    """Per stacked pose: whether the board normals of ``a`` and ``b`` differ by more than ``degrees``."""
+    cos = np.sum(np.asarray(a.R)[:, :, 2] * np.asarray(b.R)[:, :, 2], axis=1)
+    return cos < np.cos(np.radians(degrees))
 
 
 # ----------------------------------------------------------------------------- lasers at their working range
@@ -467,11 +649,11 @@ def to_calibration(result: CalibrationResult, obs: Observations) -> Calibration:
     """The ``slcv-calibration/1`` content of a result (joint solution, staged beside it)."""
     pk = result.packed
     board_poses: list[dict[str, Pose]] = [{} for _ in obs.views]
-    for k, (v, b) in enumerate(pk.pose_keys):
-        board_poses[v][b] = Pose(result.params.poses.R[k], result.params.poses.t[k])
+    for (v, b), pose in zip(pk.pose_keys, unstack_poses(result.params.poses), strict=True):
+        board_poses[v][b] = pose
     cvp: list[Pose | None] = [None] * len(obs.calibration_views)
-    for k, c in enumerate(pk.chess_keys):
-        cvp[c] = Pose(result.params.chess.R[k], result.params.chess.t[k])
+    for c, pose in zip(pk.chess_keys, unstack_poses(result.params.chess), strict=True):
+        cvp[c] = pose
     rep = report(result, obs)
     st = result.staged
     stages = {

@@ -18,7 +18,7 @@ from ._io import CalibrationViewObs, Observations
 from ._lasers import Lasers
 from ._mirror import ConeMirror
 from ._pose import Pose
-from ._problem import pack, stack_poses
+from ._problem import pack, stack_poses, unstack_poses
 from ._rig import Rig
 from ._staged import CalibrationError, calibrate_intrinsics
 
@@ -89,7 +89,7 @@ def calibrate_from_corners(
     per_view = {names[pk.chess_keys[k]]: float(np.sqrt(np.mean(per_pt[view_of == k]))) for k in range(pk.n_chess)}
     return CameraCalibration(
         params.rig.camera,
-        [Pose(params.chess.R[k], params.chess.t[k]) for k in range(pk.n_chess)],
+        unstack_poses(params.chess),
         [names[k] for k in pk.chess_keys],
         [],
         float(np.sqrt(np.mean(per_pt))),

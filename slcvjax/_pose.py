@@ -6,6 +6,7 @@ with a safe ``where`` so value and gradient are exact at ``omega = 0``.
 """
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
@@ -41,6 +42,9 @@ def so3_log(r: Float[Array, "3 3"]) -> Float[Array, "3"]:
     return factor * v
 
 
+_so3_exp_jit = jax.jit(so3_exp)  # host callers: one dispatch instead of a dozen eager operations
+
+
 class Pose(eqx.Module):
     """A rigid transform ``T_a_b``: ``p_a = R @ p_b + t`` (mm).
 
@@ -58,8 +62,8 @@ class Pose(eqx.Module):
 
     @staticmethod
     def from_rvec(rvec: ArrayLike, t: ArrayLike) -> "Pose":
-        """From an axis-angle vector (OpenCV's ``rvec``) and a translation."""
-        return Pose(so3_exp(jnp.asarray(rvec, dtype=float)), jnp.asarray(t, dtype=float))
+        """From an axis-angle vector (OpenCV's ``rvec``) and a translation (one compiled call)."""
+        return Pose(_so3_exp_jit(jnp.asarray(rvec, dtype=float)), jnp.asarray(t, dtype=float))
 
     def apply(self, p_b: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
         """Map points of frame b into frame a."""

@@ -114,8 +114,23 @@ def pack(obs: Observations, use_views: bool = True, use_direct: bool = True) -> 
 
 
 def stack_poses(poses: list[Pose]) -> Pose:
-    """A list of poses as one :class:`Pose` with leading axis (P, ...)."""
-    return Pose(jnp.stack([p.R for p in poses]), jnp.stack([p.t for p in poses]))
+    """A list of poses as one :class:`Pose` with leading axis (P, ...), stacked on the host.
+
+    Host code only (not under ``jit``): one copy to the device instead of one operation per pose.
+    """
+    return Pose(
+        jnp.asarray(np.stack([np.asarray(p.R) for p in poses])), jnp.asarray(np.stack([np.asarray(p.t) for p in poses]))
+    )
+
+
+def unstack_poses(poses: Pose) -> list[Pose]:
+    """Stacked poses (P, ...) as a list of P poses, copied to the host once (numpy fields).
+
+    Indexing a device array pose by pose costs a dispatch each; host code that loops
+    over the poses reads them from this list instead.
+    """
+    R, t = np.asarray(poses.R), np.asarray(poses.t)
+    return [Pose(R[k], t[k]) for k in range(R.shape[0])]
 
 
 def dot_residuals(
