@@ -12,6 +12,11 @@ plain squares.  Every trial has the same shapes, so both ways compile once:
 
 Reports calibrations (joint solves) per second for each, compilation apart, on the
 default JAX device; run it where a GPU is present to time both there.
+
+``--whole N`` also times N whole calibrations (staged pipeline, every joint pass, the
+covariance) through ``calibrate_many`` with ``batch="loop"`` and ``batch="vmap"`` (the
+passes of all trials in lockstep, the trial axis sharded over ``jax.devices()``; force
+several CPU devices with ``XLA_FLAGS=--xla_force_host_platform_device_count=K``).
 """
 
 import argparse
@@ -25,7 +30,7 @@ import numpy as np
 from bench_forward import machine
 
 from slcvjax import _lm
-from slcvjax._calibrate import _arrays
+from slcvjax._calibrate import _arrays, calibrate_many
 from slcvjax._problem import pack, stack_poses
 from slcvjax._simulate import make_scene, simulate
 
@@ -48,9 +53,33 @@ def trials(n: int):
     return starts, packs, masks
 
 
+def whole(n: int) -> dict:
+    """Whole calibrations of ``n`` preset trials (0.5 px) by ``calibrate_many``: loop against vmap."""
+    scene = make_scene("paper")
+    obs = [simulate(scene, noise=0.5, seed=seed)[0] for seed in range(n)]
+    out = {"trials": n, "devices": [str(d) for d in jax.devices()]}
+    for mode in ("loop", "vmap"):
+        t0 = time.perf_counter()
+        calibrate_many(obs[:1] if mode == "loop" else obs, batch=mode)  # compiles (vmap: for n trials)
+        first = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        res = calibrate_many(obs, batch=mode)
+        run = time.perf_counter() - t0
+        out[mode] = {
+            "compile_s": first - (run / n if mode == "loop" else run),
+            "run_s": run,
+            "calibrations_per_s": n / run,
+            "converged": sum(r.passes[-1].result.startswith("converged") for r in res),
+        }
+        print(f"whole calibrations, {mode}: {n / run:.2f} per s ({run:.1f} s for {n})", flush=True)
+    out["vmap_over_loop"] = out["vmap"]["calibrations_per_s"] / out["loop"]["calibrations_per_s"]
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trials", type=int, default=16)
+    ap.add_argument("--whole", type=int, default=0, help="also time this many whole calibrations (0: none)")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
     starts, packs, masks = trials(args.trials)
@@ -92,6 +121,8 @@ def main() -> None:
         "max_relative_cost_difference": same,
     }
     out["vmap_over_loop"] = out["vmap"]["calibrations_per_s"] / out["loop"]["calibrations_per_s"]
+    if args.whole > 0:
+        out["whole"] = whole(args.whole)
     print(json.dumps(out, indent=1))
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)

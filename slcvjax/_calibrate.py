@@ -254,6 +254,12 @@ def _trial_sharding(n: int):
     return -(-n // len(devices)) * len(devices), jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("trials"))
 
 
+def _place(x, sharding):
+    """``x`` (the same on every process) as a global array laid out by ``sharding``."""
+    host = np.asarray(x)
+    return jax.make_array_from_callback(host.shape, sharding, lambda index: host[index])
+
+
 def _solve_vmap(jobs: list[tuple], loss: str, max_steps: int, size: int | None = None) -> list[LMResult]:
     """The jobs as ``vmap``-ped solves, one per group of equal sizes, sharded over the devices.
 
@@ -274,8 +280,13 @@ def _solve_vmap(jobs: list[tuple], loss: str, max_steps: int, size: int | None =
         rt = jnp.asarray(cols[5], dtype=float)
         batch = (p, a, m, sc, kw, rt)
         if sharding is not None:
-            batch = jax.device_put(batch, sharding)
+            # every process holds the whole batch (the same on each): each device takes its rows
+            batch = jax.tree_util.tree_map(functools.partial(_place, sharding=sharding), batch)
         res = _solve_batched(*batch, loss=loss, max_steps=max_steps)
+        if not res.cost.is_fully_addressable:  # several hosts: every process gets every trial
+            from jax.experimental import multihost_utils
+
+            res = multihost_utils.process_allgather(res, tiled=True)
         for j, i in enumerate(idx):
             out[i] = jax.tree_util.tree_map(lambda x, j=j: x[j], res)
     return out

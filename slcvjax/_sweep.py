@@ -10,9 +10,11 @@ with the truth component by component, as in Figs. 6–7 of Chen, Zhou & Xue (20
 
 The bound is the same scene's ``sigma^2 (J^T J)^-1`` at the truth, propagated to the
 same components; it scales with the noise, so it is computed once.  Every trial has
-the same observation shapes, so the whole sweep shares one compilation.  On a CPU a
-plain loop over the compiled calibration is faster than ``vmap`` over trials (the
-batch waits for its slowest trial), so trials run one after another.
+the same observation shapes, so the whole sweep shares one compilation.  The trials
+are calibrated by :func:`calibrate_many`: on a CPU one after another (a ``vmap`` batch
+waits for its slowest trial: ``benchmarks/bench_sweep.py`` measured the loop 3x
+faster), on an accelerator all of them in lockstep, each LM pass one ``vmap``-ped
+solve with the trial axis sharded over the devices.
 """
 
 import csv
@@ -24,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._calibrate import calibrate, cramer_rao, laser_errors
+from ._calibrate import calibrate_many, cramer_rao, laser_errors, resolve_batch
 from ._io import write_json_atomic, write_text_atomic
 from ._lasers import Lasers
 from ._rig import Rig
@@ -80,10 +82,12 @@ def run_sweep(
     n_lasers: int = 10,
     n_views: int = 16,
     progress: bool = False,
+    batch: str = "auto",
 ) -> dict:
     """Run a sweep; returns the ``slcv-sweep/1`` document (plus per-trial details under ``trials_detail``).
 
-    Trial ``t`` of level ``l`` simulates with seed ``seed + 1000 l + t``.
+    Trial ``t`` of level ``l`` simulates with seed ``seed + 1000 l + t``.  ``batch``:
+    how the trials are calibrated (:func:`calibrate_many`: ``auto``, ``loop`` or ``vmap``).
     """
     noise = tuple(float(s) for s in noise)
     if not noise or any(not np.isfinite(s) or s < 0 for s in noise):
@@ -101,34 +105,27 @@ def run_sweep(
     pos = {m: np.zeros(shape) for m in ("staged", "joint")}
     ang = {m: np.zeros(shape) for m in ("staged", "joint")}
     detail = []
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(noise) * trials, desc="sweep", unit="calibration")
     t0 = time.perf_counter()
-    for li, s in enumerate(noise):
-        for t in range(trials):
-            obs, _ = simulate(scene, noise=s, seed=seed + 1000 * li + t)
-            t1 = time.perf_counter()
-            res = calibrate(obs)
-            st = res.staged
-            for m, rig in (("joint", res.rig), ("staged", Rig(st.camera, st.mirror, st.lasers))):
-                comp[m][li, t] = laser_component_errors(rig, truth.rig, x_ref)
-                pos[m][li, t], ang[m][li, t] = laser_errors(rig, truth.rig, x_ref)
-            detail.append(
-                {
-                    "noise": s,
-                    "trial": t,
-                    "seed": seed + 1000 * li + t,
-                    "seconds": time.perf_counter() - t1,
-                    "converged": res.passes[-1].result.startswith("converged"),
-                }
-            )
-            if bar is not None:
-                bar.update(1)
-    if bar is not None:
-        bar.close()
+    seeds = [(li, s, t, seed + 1000 * li + t) for li, s in enumerate(noise) for t in range(trials)]
+    observations = [simulate(scene, noise=s, seed=sd)[0] for _, s, _, sd in seeds]
+    t1 = time.perf_counter()
+    results = calibrate_many(observations, batch=batch, progress=progress)
+    per_trial = (time.perf_counter() - t1) / len(results)
+    for (li, s, t, sd), res in zip(seeds, results, strict=True):
+        st = res.staged
+        for m, rig in (("joint", res.rig), ("staged", Rig(st.camera, st.mirror, st.lasers))):
+            comp[m][li, t] = laser_component_errors(rig, truth.rig, x_ref)
+            pos[m][li, t], ang[m][li, t] = laser_errors(rig, truth.rig, x_ref)
+        detail.append(
+            {
+                "noise": s,
+                "trial": t,
+                "seed": sd,
+                # in lockstep (vmap) the trials share their time: the batch's mean
+                "seconds": res.timings["total_s"] if resolve_batch(batch) == "loop" else per_trial,
+                "converged": res.passes[-1].result.startswith("converged"),
+            }
+        )
     sig = np.asarray(noise)
     bound_comp = sig[:, None, None] * unit_comp[None]  # (levels, N, 6)
     bound = {
@@ -146,6 +143,8 @@ def run_sweep(
             "bound": bound,
         },
         "scene": {"preset": preset, "lasers": n, "views": n_views, "seed": seed},
+        "batch": resolve_batch(batch),
+        "devices": [str(d) for d in jax.devices()],
         "converged": int(sum(d["converged"] for d in detail)),
         "seconds": time.perf_counter() - t0,
         "trials_detail": detail,

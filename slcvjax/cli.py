@@ -446,15 +446,23 @@ def _parse_levels(text: str) -> tuple[float, ...]:
 
 
 def _cmd_sweep(args) -> int:
+    import jax
+
+    from ._calibrate import resolve_batch
     from ._sweep import run_sweep, write_sweep
 
     levels = _parse_levels(args.noise)
+    batch = resolve_batch(args.batch)
+
     print(
         f"sweep: preset {args.preset}, noise {list(levels)} px, {args.trials} trials per level, "
-        f"{args.lasers} lasers, {args.views} views (the first calibration compiles, about a minute)",
+        f"{args.lasers} lasers, {args.views} views; {batch} over the trials on {len(jax.devices())} "
+        f"{jax.default_backend()} device(s) (the first calibration compiles, about a minute)",
         flush=True,
     )
-    doc = run_sweep(args.preset, levels, args.trials, args.seed, args.lasers, args.views, progress=sys.stderr.isatty())
+    doc = run_sweep(
+        args.preset, levels, args.trials, args.seed, args.lasers, args.views, progress=sys.stderr.isatty(), batch=batch
+    )
     m = doc["methods"]
     print("noise px   joint pos mm  dir deg   bound pos mm  dir deg   staged pos mm  dir deg")
     for i, s in enumerate(doc["noise"]):
@@ -617,6 +625,13 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--seed", type=int, default=0, help="first seed (trial t of level l uses seed + 1000 l + t)")
     w.add_argument("--lasers", type=int, default=10, help="lasers (default 10)")
     w.add_argument("--views", type=int, default=16, help="catadioptric views (default 16)")
+    w.add_argument(
+        "--batch",
+        default="auto",
+        choices=("auto", "loop", "vmap"),
+        help="trials one after another (loop) or in lockstep, vmap-ped and sharded over the devices "
+        "(default auto: loop on a CPU, vmap on an accelerator)",
+    )
     w.add_argument("--out", default="slcvjax-sweep", help="output directory (default ./slcvjax-sweep)")
     w.set_defaults(func=_cmd_sweep)
 
