@@ -35,6 +35,7 @@ import numpy as np
 
 from . import _lm
 from ._calibrate import _laser_offset
+from ._lasers import line_plane_intersection
 from ._lm import N_CM, N_LAS, Params
 from ._mirror import project_through_mirror
 from ._newton import exact_second_order
@@ -161,10 +162,8 @@ def _weights(rig: Rig, poses: Pose, pk: Packed, n_v: int):
 
     def spot(R, t, li):
         p, d = las.points[li], las.directions[li]
-        n = R[:, 2]
-        den = jnp.dot(n, d)
-        lam = jnp.where(jnp.abs(den) > 1e-9, jnp.dot(n, t - p) / jnp.where(jnp.abs(den) > 1e-9, den, 1.0), -1.0)
-        x = p + lam * d
+        x, ahead = line_plane_intersection(p, d, Pose(R, t))
+        lam = jnp.where(ahead, jnp.dot(x - p, d), -1.0)  # along the beam (unit direction); -1 behind it
         return lam, x, project_through_mirror(cam, mir, x).valid
 
     # a board needs 4 visible dots for its pose (the staged calibration's PnP): with fewer,
@@ -197,9 +196,7 @@ def _predict(views, rig, T_bw, chess, pk, sigma, n_v):
     g, nb = params.n_global, params.n_blocks
     masks = _lm.make_masks(params)
     ne = _lm.normal_equations(rows, w_obs[rows.obs], g, nb, masks.glob, masks.blocks)
-    Dinv_Bt = jnp.linalg.solve(ne.D, jnp.swapaxes(ne.B, 1, 2))
-    S = ne.A - jnp.einsum("kgi,kih->gh", ne.B, Dinv_Bt)
-    cov = sigma**2 * jnp.linalg.inv(S)
+    cov = sigma**2 * _lm.schur_inverse(ne)[0]
 
     def laser(i):
         c = jax.lax.dynamic_slice(cov, (N_CM + N_LAS * i, N_CM + N_LAS * i), (N_LAS, N_LAS))

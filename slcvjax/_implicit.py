@@ -53,12 +53,7 @@ def _weights(kind_weight) -> Float[Array, "4"]:
 def _rho(r, k, robust: bool, loss: str, c):
     """The LM's per-observation cost of residual ``r`` with kind weight ``k`` (see ``_lm._robust``)."""
     sq = k * jnp.sum(r**2)
-    if not robust or loss == "linear":
-        return 0.5 * sq
-    norm = jnp.sqrt(jnp.maximum(sq, 1e-300))
-    if loss == "huber":
-        return jnp.where(norm <= c, 0.5 * sq, c * norm - 0.5 * c * c)
-    return 0.5 * c * c * jnp.log1p(sq / (c * c))
+    return _lm.robust_cost(sq, loss, c)[0] if robust else 0.5 * sq
 
 
 class _Blocks(NamedTuple):

@@ -291,25 +291,27 @@ def robust_weights(rows: Rows, n_obs: int, loss: str, scale, kind_weight=None) -
     return w[rows.obs], jnp.sum(rho)
 
 
+def robust_cost(sq, loss: str, c):
+    """``(rho, w)`` of whitened squared residual norms ``sq``: the robust cost and its IRLS
+    weight ``2 rho'(sq)``; smooth enough to be differentiated twice (``sq = 0`` included)."""
+    norm = jnp.sqrt(jnp.maximum(sq, 1e-300))
+    if loss == "huber":
+        inside = norm <= c
+        return jnp.where(inside, 0.5 * sq, c * norm - 0.5 * c * c), jnp.where(inside, 1.0, c / norm)
+    if loss == "cauchy":
+        return 0.5 * c * c * jnp.log1p(sq / (c * c)), 1.0 / (1.0 + sq / (c * c))
+    return 0.5 * sq, jnp.ones_like(sq)
+
+
 def _robust(rows: Rows, n_obs: int, loss: str, scale, kw):
     """Per-observation IRLS weights, costs (invalid ones at a fixed penalty) and kinds."""
     kind_obs = jax.ops.segment_max(rows.kind, rows.obs, num_segments=n_obs)
     k = kw[kind_obs]
     sq = k * jax.ops.segment_sum(rows.r**2, rows.obs, num_segments=n_obs)  # whitened
-    norm = jnp.sqrt(sq)
     # dots and spots; the rim and the chessboard corners stay plain (a robust rim made the
     # lasers from rendered images worse in benchmarks/images_vs_file.py)
     robust = kind_obs <= 1
-    c = scale
-    if loss == "huber":
-        w = jnp.where(norm <= c, 1.0, safe_div(c, norm))
-        rho = jnp.where(norm <= c, 0.5 * sq, c * norm - 0.5 * c * c)
-    elif loss == "cauchy":
-        w = 1.0 / (1.0 + sq / (c * c))
-        rho = 0.5 * c * c * jnp.log1p(sq / (c * c))
-    else:
-        w = jnp.ones_like(sq)
-        rho = 0.5 * sq
+    rho, w = robust_cost(sq, loss, scale)
     w = jnp.where(robust, w, 1.0) * k
     rho = jnp.where(robust, rho, 0.5 * sq)
     # an invalid prediction (off the mirror, off the sensor) costs a fixed penalty, so that a
@@ -516,6 +518,15 @@ class Covariance(NamedTuple):
     dof: Int[Array, ""]
 
 
+def schur_inverse(ne: Normal) -> tuple[Array, Array, Array]:
+    """``(S^-1, D^-1, D^-1 B^T)``: the global block of ``H^-1`` (``S`` the Schur complement over
+    the poses) and the pose blocks' pieces that give theirs."""
+    Dinv = jnp.linalg.inv(ne.D)
+    Dinv_Bt = jnp.einsum("kij,kgj->kig", Dinv, ne.B)
+    S = ne.A - jnp.einsum("kgi,kih->gh", ne.B, Dinv_Bt)
+    return jnp.linalg.inv(S), Dinv, Dinv_Bt
+
+
 def covariance(
     params: Params,
     pk: Packed,
@@ -552,10 +563,7 @@ def covariance(
         if sigma is None
         else jnp.asarray(sigma, dtype=float) ** 2
     )
-    Dinv = jnp.linalg.inv(ne.D)
-    Dinv_Bt = jnp.einsum("kij,kgj->kig", Dinv, ne.B)
-    S = ne.A - jnp.einsum("kgi,kih->gh", ne.B, Dinv_Bt)
-    Sinv = jnp.linalg.inv(S)
+    Sinv, Dinv, Dinv_Bt = schur_inverse(ne)
     mg = masks.glob * seen_glob
     cov_g = s2 * Sinv * mg[:, None] * mg[None, :]
     cov_p = s2 * (Dinv + jnp.einsum("kig,gh,kjh->kij", Dinv_Bt, Sinv, Dinv_Bt))
