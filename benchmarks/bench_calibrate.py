@@ -15,7 +15,8 @@ The scaling part times the Schur LM over more views (one compilation each).  The
 part times whole calibrations (``calibrate``: staged pipeline, every joint pass, the
 covariance) of ``--batch`` simulated preset observation sets one after another: the first
 compiles, the others are what one more calibration in a batch costs (goal: 0.5 s on 2
-cores).  Results are printed and written as JSON with the machine's description.
+cores), one at a time and two at a time (``calibrate_many(..., workers=2)``).  Results are
+printed and written as JSON with the machine's description.
 """
 
 import argparse
@@ -30,7 +31,7 @@ from bench_forward import machine
 from scipy.optimize import least_squares
 
 from slcvjax import _lm
-from slcvjax._calibrate import _arrays, calibrate
+from slcvjax._calibrate import _arrays, calibrate, calibrate_many
 from slcvjax._problem import pack, stack_poses
 from slcvjax._simulate import make_scene, simulate
 
@@ -83,6 +84,10 @@ def time_batch(n: int) -> dict:
         times.append(time.perf_counter() - t0)
         staged_s.append(res.timings["staged_s"])
     rest = np.asarray(times[1:])
+    # the same calibrations two at a time (calibrate_many's threads): the batch's time per calibration
+    t0 = time.perf_counter()
+    calibrate_many(obs[1:], batch="loop", workers=2)
+    two = (time.perf_counter() - t0) / (n - 1)
     r = {
         "calibrations": n,
         "first_s": times[0],
@@ -90,11 +95,13 @@ def time_batch(n: int) -> dict:
         "mean_s": float(np.mean(rest)),
         "max_s": float(np.max(rest)),
         "staged_median_s": float(np.median(staged_s[1:])),
+        "two_workers_per_calibration_s": two,
+        "one_at_a_time_per_calibration_s": float(np.sum(rest) / (n - 1)),
     }
     print(
         f"batch of {n} calibrations (staged + joint + covariance): first {r['first_s']:.1f} s (compiling), "
         f"then median {r['median_s']:.3f} s, mean {r['mean_s']:.3f} s, max {r['max_s']:.3f} s "
-        f"(staged median {r['staged_median_s']:.3f} s)",
+        f"(staged median {r['staged_median_s']:.3f} s); two at a time (workers=2): {two:.3f} s per calibration",
         flush=True,
     )
     return r

@@ -1,4 +1,5 @@
-"""Calibrations in lockstep (``calibrate_many(batch="vmap")``) with the trial axis sharded over devices.
+"""Several calibrations at once: in lockstep (``calibrate_many(batch="vmap")``) with the trial axis
+sharded over devices, and two at a time in threads (``batch="loop", workers=2``).
 
 The sharded run needs several devices: a subprocess gets two CPU devices from
 ``XLA_FLAGS=--xla_force_host_platform_device_count=2`` and calibrates three trials (padded
@@ -55,6 +56,8 @@ def test_batch_choice():
     assert resolve_batch("vmap") == "vmap"
     with pytest.raises(ValueError, match="batch"):
         calibrate_many([], batch="pmap")
+    with pytest.raises(ValueError, match="workers"):
+        calibrate_many([], batch="loop", workers=0)
 
 
 def test_sharded_lockstep_calibrations_equal_one_after_another():
@@ -67,8 +70,15 @@ def test_sharded_lockstep_calibrations_equal_one_after_another():
     # every pass ran as one vmap-ped solve spread over both devices
     assert len(out["shards"]) >= 4 and set(out["shards"]) == {2}
     scene = make_scene("paper", **SCENE)
-    for i, s in enumerate(SEEDS):
-        ref = calibrate(simulate(scene, noise=0.5, seed=s)[0])
+    observations = [simulate(scene, noise=0.5, seed=s)[0] for s in SEEDS]
+    threaded = calibrate_many(observations, batch="loop", workers=2)
+    for i, obs in enumerate(observations):
+        ref = calibrate(obs)
+        # two at a time in threads: the same calibrations
+        assert [p.steps for p in threaded[i].passes] == [p.steps for p in ref.passes]
+        np.testing.assert_allclose(
+            np.asarray(threaded[i].rig.lasers.points), np.asarray(ref.rig.lasers.points), atol=1e-7
+        )
         assert out["passes"][i] == [[p.name, p.steps] for p in ref.passes]
         np.testing.assert_allclose(out["points"][i], np.asarray(ref.rig.lasers.points), atol=1e-7)
         np.testing.assert_allclose(out["directions"][i], np.asarray(ref.rig.lasers.directions), atol=1e-10)
