@@ -243,8 +243,8 @@ def _kind_weight(kind_weight) -> jnp.ndarray:
     return jnp.asarray([1.0] * 4 if kind_weight is None else kind_weight, dtype=float)
 
 
-def _solve_loop(jobs: list[tuple], loss: str, max_steps: int) -> list[LMResult]:
-    """Each job ``(params, arr, masks, scale, kind_weight, rtol)`` through the compiled solve."""
+def _solve_loop(jobs: list[tuple], loss: str, max_steps: int, size: int | None = None) -> list[LMResult]:
+    """Each job ``(params, arr, masks, scale, kind_weight, rtol)`` through the compiled solve (``size``: unused)."""
     return [
         _solve(p, a, m, loss=loss, scale=sc, max_steps=max_steps, rtol=rt, kind_weight=_kind_weight(kw))
         for p, a, m, sc, kw, rt in jobs
@@ -337,10 +337,15 @@ def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, s
     trials = [_Trial(o, camera, freeze, time.perf_counter()) for o in obs_list]
     size = len(trials)
 
-    def run(name, chosen, params, masks, scales, kind_weight=None, rtol=_RTOL_START):
-        jobs = [(params[i], trials[i].arr, masks[i], scales[i], kind_weight, rtol) for i in chosen]
-        kwargs = {"size": size} if solver is _solve_vmap else {}
-        for i, res in zip(chosen, solver(jobs, loss, max_steps, **kwargs), strict=True):
+    def run(name, chosen, lasers_held, scale, kind_weight=None, rtol=_RTOL_START):
+        """One LM pass of the ``chosen`` trials from where they are; ``scale(trial)``: its loss scale."""
+        for i in chosen:
+            trials[i].scale = scale(trials[i])
+        jobs = [
+            (tr.params, tr.arr, tr.mask_a if lasers_held else tr.masks, tr.scale, kind_weight, rtol)
+            for tr in (trials[i] for i in chosen)
+        ]
+        for i, res in zip(chosen, solver(jobs, loss, max_steps, size=size), strict=True):
             tr = trials[i]
             tr.passes.append(
                 JointPass(
@@ -349,7 +354,7 @@ def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, s
                     RESULT_NAMES[int(res.result)],
                     float(res.initial_cost),
                     float(res.cost),
-                    float(scales[i]),
+                    float(tr.scale),
                 )
             )
             tr.params = res.params
@@ -358,20 +363,12 @@ def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, s
 
     every = list(range(size))
 
-    def scale_of(tr, floor):
-        return loss_scale or 3.0 * max(robust_sigma(tr.params, tr.pk), floor)
+    def robust_scale(floor):
+        return lambda tr: loss_scale or 3.0 * max(robust_sigma(tr.params, tr.pk), floor)
 
-    # A: geometry without the lasers
-    run(
-        "A: camera, mirror, poses",
-        every,
-        [tr.params for tr in trials],
-        [tr.mask_a for tr in trials],
-        [scale_of(tr, 0.1) for tr in trials],
-        [1.0, 0.0, 1.0, 1.0],
-        # only far enough to decide the boards' flips again
-        rtol=_RTOL_TWIN if "poses" not in freeze else _RTOL_START,
-    )
+    # A: geometry without the lasers, only far enough to decide the boards' flips again
+    rtol_a = _RTOL_TWIN if "poses" not in freeze else _RTOL_START
+    run("A: camera, mirror, poses", every, True, robust_scale(0.1), [1.0, 0.0, 1.0, 1.0], rtol_a)
     # the boards' flips decided again on the refined geometry, then A once more where any
     # board turned (otherwise pass A's poses already fit the dots on this geometry)
     if "poses" not in freeze:
@@ -383,36 +380,22 @@ def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, s
                 tr.params = Params(p.rig, stack_poses(poses), p.chess)
                 again.append(i)
         if again:
-            run(
-                "A2: after re-flipping",
-                again,
-                [tr.params for tr in trials],
-                [tr.mask_a for tr in trials],
-                [scale_of(tr, 0.1) if i in again else 1.0 for i, tr in enumerate(trials)],
-                [1.0, 0.0, 1.0, 1.0],
-            )
+            run("A2: after re-flipping", again, True, robust_scale(0.1), [1.0, 0.0, 1.0, 1.0])
     # B: lasers refitted, then everything
     if "lasers" not in freeze:
         for tr in trials:
             p = tr.params
             lasers, _ = fit_lasers(p.rig.camera, p.rig.mirror, tr.pk, unstack_poses(p.poses), tr.obs.n_lasers)
             tr.params = Params(Rig(p.rig.camera, p.rig.mirror, lasers), p.poses, p.chess)
-    run(
-        "B: joint",
-        every,
-        [tr.params for tr in trials],
-        [tr.masks for tr in trials],
-        [scale_of(tr, 0.05) for tr in trials],
-    )
+    run("B: joint", every, False, robust_scale(0.05))
     # boards whose flipped twin (refined with dots and spots, the rig held) fits better are swapped
     for tr in trials:
-        tr.scale = scale_of(tr, 0.05)
+        tr.scale = robust_scale(0.05)(tr)
     if "poses" not in freeze:
         flip = [i for i, tr in enumerate(trials) if tr.pk.n_poses]
         twins = {i: _twin(trials[i].params, trials[i].arr, trials[i].masks) for i in flip}
         jobs = [(twins[i][0], trials[i].arr, twins[i][1], trials[i].scale, None, _RTOL_TWIN) for i in flip]
-        kwargs = {"size": size} if solver is _solve_vmap else {}
-        for i, res in zip(flip, solver(jobs, loss, max_steps, **kwargs), strict=True):
+        for i, res in zip(flip, solver(jobs, loss, max_steps, size=size), strict=True):
             tr = trials[i]
             tr.params, n_flipped = _keep_better(tr.params, res.params, tr.arr, loss, tr.scale)
             if n_flipped:
@@ -420,14 +403,7 @@ def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, s
     # C: final pass at the re-estimated scale.  Every kind keeps weight 1: weighting each by
     # its own noise (the rim's is larger in rendered images) made the lasers worse from images
     # (benchmarks/images_vs_file.py), where the dots' errors are mostly systematic
-    run(
-        "C: joint (final)",
-        every,
-        [tr.params for tr in trials],
-        [tr.masks for tr in trials],
-        [tr.scale for tr in trials],
-        rtol=_RTOL_FINAL,
-    )
+    run("C: joint (final)", every, False, lambda tr: tr.scale, rtol=_RTOL_FINAL)
     out = []
     for tr in trials:
         cov = _covariance(tr.params, tr.arr, tr.masks, loss, tr.scale, kind_weight=jnp.ones(4, dtype=float))
