@@ -1,6 +1,6 @@
 """Joint-solve benchmark: the project's Schur LM against scipy.optimize.least_squares.
 
-Run: ``python benchmarks/bench_calibrate.py [--views 16,64,256] [--no-scipy] [--out FILE]``.
+Run: ``python benchmarks/bench_calibrate.py [--views 16,64,256,1024] [--no-scipy] [--out FILE]``.
 
 On the paper preset (0.5 px noise) every solver starts from the same perturbed truth and
 solves the same least-squares problem (plain squares, no robust loss):
@@ -109,7 +109,7 @@ def time_batch(n: int) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--views", default="16,64,256")
+    ap.add_argument("--views", default="16,64,256,1024")
     ap.add_argument("--no-scipy", action="store_true")
     ap.add_argument("--batch", type=int, default=12, help="whole calibrations to time (0: none)")
     ap.add_argument("--out", default="benchmarks/results/calibrate.json")
