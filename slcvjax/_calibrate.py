@@ -204,11 +204,12 @@ def calibrate_many(
 
     ``workers`` (``loop``): calibrations run at once in threads.  The compiled solves
     release the interpreter, so on a CPU two threads overlap one trial's host steps and
-    small kernels with another's: on 2 cores 0.37 s per calibration of the preset against
-    0.48 s one at a time (``benchmarks/bench_calibrate.py``); results equal to round-off.
+    small kernels with another's: on 2 cores 0.36 s per calibration of the preset against
+    0.46 s one at a time (``benchmarks/bench_calibrate.py``); results equal to round-off.
 
     ``kwargs`` are :func:`calibrate`'s (``camera``, ``freeze``, ``loss``, ...).  With
-    ``progress`` a bar counts calibrations (``loop``) or passes (``vmap``).
+    ``progress`` a bar counts the calibrations (in ``vmap`` they finish together, and the
+    bar names the pass under way).
     """
     kw = dict(camera=None, freeze=(), loss="huber", loss_scale=None, max_steps=200) | kwargs
     args = (kw["camera"], kw["freeze"], kw["loss"], kw["loss_scale"], kw["max_steps"])
@@ -233,7 +234,10 @@ def calibrate_many(
                     if bar is not None:
                         bar.update(1)
             return out
-        return _calibrate_lockstep(observations, *args, _solve_vmap, bar=bar)
+        out = _calibrate_lockstep(observations, *args, _solve_vmap, bar=bar)
+        if bar is not None:
+            bar.update(len(out))  # in lockstep they finish together
+        return out
     finally:
         if bar is not None:
             bar.close()

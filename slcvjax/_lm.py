@@ -119,17 +119,9 @@ def rim_value(cam: Camera, mir: ConeMirror, uv: Float[Array, "2"]) -> tuple[Floa
 
 
 def rim_scale(cam: Camera, mir: ConeMirror, uv: Float[Array, "2"]) -> Float[Array, ""]:
-    """``|dF/duv|`` (mm per px), the normalisation of :func:`rim_distance`."""
+    """``|dF/duv|`` (mm per px): ``F / |dF/duv|`` is a pixel's first-order (Sampson) distance
+    from the projected rim circle, in px."""
     return safe_norm(jax.jacfwd(lambda u: rim_value(cam, mir, u)[0])(uv))
-
-
-def rim_distance(cam: Camera, mir: ConeMirror, uv: Float[Array, "2"]) -> tuple[Float[Array, ""], Bool[Array, ""]]:
-    """Signed distance (px, first order) of a pixel from the projected rim circle.
-
-    The normalisation is held constant in the derivatives (a Sampson distance)."""
-    val, ok = rim_value(cam, mir, uv)
-    scale = jax.lax.stop_gradient(rim_scale(cam, mir, jax.lax.stop_gradient(uv)))
-    return safe_div(val, scale), ok & (scale > 0.0)
 
 
 def _rim(d, cam, mir, uv, norm):
@@ -172,8 +164,8 @@ def _rows(params: Params, pk: Packed, with_jac: bool = True, rim_norm: Array | N
     """Every residual row with its local Jacobian.
 
     ``rim_norm``: the rim rows' normalisations (:func:`rim_norms`), held as constants; by
-    default those of ``params`` itself, so that the rim rows are the distances
-    :func:`rim_distance` (the Jacobian then still holds them constant).  The LM passes the
+    default those of ``params`` itself, so that the rim rows are the pixels' first-order
+    distances from the rim (the Jacobian still holds them constant).  The LM passes the
     normalisation at its start, so that its cost and its Jacobian describe one function.
     """
     rig = params.rig
