@@ -525,13 +525,16 @@ def laser_errors(est: Rig, truth: Rig, x_ref: np.ndarray) -> tuple[np.ndarray, n
     return pos, ang
 
 
-def cramer_rao(truth: Calibration, obs: Observations, sigma: float) -> dict:
+def cramer_rao(truth: Calibration, obs: Observations, sigma: float, packed: Packed | None = None) -> dict:
     """The Cramer-Rao bound of a scene: ``sigma^2 (J^T J)^-1`` at the true parameters.
 
     Returns the covariance and, per laser, the bound's position std at the working
-    point (mm) and direction std (rad), with their RMS over lasers.
+    point (mm) and direction std (rad), with their RMS over lasers.  ``packed``: the
+    observations as a calibration packed them (``CalibrationResult.packed``: spots
+    detected without a board have the board the staged stage gave them); by default
+    ``pack(obs)``, which leaves such spots out.
     """
-    pk = pack(obs)
+    pk = pack(obs) if packed is None else packed
     poses = stack_poses([truth.board_poses[v][b] for v, b in pk.pose_keys])
     chess = [truth.calibration_view_poses[c] for c in pk.chess_keys] if truth.calibration_view_poses else []
     chess_stack = stack_poses(chess) if chess else Pose(jnp.zeros((0, 3, 3)), jnp.zeros((0, 3)))

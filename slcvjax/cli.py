@@ -146,7 +146,8 @@ def _cmd_demo(args) -> int:
     print(f"[{next(step)}/{steps}] compare with the truth and the Cramer-Rao bound", flush=True)
     # the bound at the noise of the points and spots (the detector's, from the residuals, for images)
     sigma = robust_sigma(res.params, res.packed) if images else max(args.noise, 1e-3)
-    bound = cramer_rao(truth, obs, sigma)
+    # with the boards the calibration gave the spots detected without one (else they are left out)
+    bound = cramer_rao(truth, obs, sigma, packed=res.packed)
     pos, ang = laser_errors(res.rig, truth.rig, bound["x_ref"])
     st = res.staged
     pos_s, ang_s = laser_errors(Rig(st.camera, st.mirror, st.lasers), truth.rig, bound["x_ref"])
