@@ -379,9 +379,9 @@ def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, s
         again = []
         for i, tr in enumerate(trials):
             p = tr.params
-            poses, _ = board_poses(p.rig.camera, p.rig.mirror, tr.pk, start=p.poses)
-            if np.any(_turned(stack_poses(poses), p.poses)):
-                tr.params = Params(p.rig, stack_poses(poses), p.chess)
+            poses = stack_poses(board_poses(p.rig.camera, p.rig.mirror, tr.pk, start=p.poses)[0])
+            if np.any(_turned(poses, p.poses)):
+                tr.params = Params(p.rig, poses, p.chess)
                 again.append(i)
         if again:
             run("A2: after re-flipping", again, True, robust_scale(0.1), [1.0, 0.0, 1.0, 1.0])

@@ -11,10 +11,10 @@ with the truth component by component, as in Figs. 6–7 of Chen, Zhou & Xue (20
 The bound is the same scene's ``sigma^2 (J^T J)^-1`` at the truth, propagated to the
 same components; it scales with the noise, so it is computed once.  Every trial has
 the same observation shapes, so the whole sweep shares one compilation.  The trials
-are calibrated by :func:`calibrate_many`: on a CPU one after another (a ``vmap`` batch
-waits for its slowest trial: ``benchmarks/bench_sweep.py`` measured the loop 1.8x
-faster; two at a time in threads), on an accelerator all of them in lockstep, each LM pass one ``vmap``-ped
-solve with the trial axis sharded over the devices.
+are calibrated by :func:`calibrate_many`: on a CPU in a loop, two at a time in threads
+(a ``vmap`` batch waits for its slowest trial: ``benchmarks/bench_sweep.py`` measured
+the loop 1.8x faster), on an accelerator all of them in lockstep, each LM pass one
+``vmap``-ped solve with the trial axis sharded over the devices.
 """
 
 import csv
@@ -95,6 +95,7 @@ def run_sweep(
         raise ValueError(f"noise: expected non-negative pixel sigmas, got {list(noise)}")
     if trials < 1:
         raise ValueError(f"trials: expected at least 1, got {trials}")
+    batch = resolve_batch(batch)
     scene = make_scene(preset, n_lasers=n_lasers, n_views=n_views)
     exact, truth = simulate(scene)
     unit = cramer_rao(truth, exact, 1.0)  # the bound at 1 px; it scales with the noise
@@ -124,7 +125,7 @@ def run_sweep(
                 "trial": t,
                 "seed": sd,
                 # in lockstep (vmap) the trials share their time: the batch's mean
-                "seconds": res.timings["total_s"] if resolve_batch(batch) == "loop" else per_trial,
+                "seconds": res.timings["total_s"] if batch == "loop" else per_trial,
                 "converged": res.passes[-1].result.startswith("converged"),
             }
         )
@@ -145,7 +146,7 @@ def run_sweep(
             "bound": bound,
         },
         "scene": {"preset": preset, "lasers": n, "views": n_views, "seed": seed},
-        "batch": resolve_batch(batch),
+        "batch": batch,
         "devices": [str(d) for d in jax.devices()],
         "converged": int(sum(d["converged"] for d in detail)),
         "seconds": time.perf_counter() - t0,
