@@ -13,7 +13,9 @@
    point; a least-squares 3D line per laser.
 """
 
+import contextlib
 import dataclasses
+import threading
 from dataclasses import dataclass, field
 
 import cv2
@@ -27,6 +29,24 @@ from ._lasers import Lasers
 from ._mirror import ConeMirror, back_project
 from ._pose import Pose, so3_exp
 from ._problem import Packed, pack, unstack_poses
+
+_CV_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def _opencv_one_thread():
+    """OpenCV on one thread while inside: its threaded ``calibrateCamera`` sums in a varying order,
+    so the same corners gave intrinsics differing by ~4e-8 px from call to call, and the whole
+    calibration was not reproducible.  The lock keeps concurrent calibrations from racing on
+    OpenCV's global thread count."""
+    with _CV_LOCK:
+        n = cv2.getNumThreads()
+        cv2.setNumThreads(1)
+        try:
+            yield
+        finally:
+            cv2.setNumThreads(n)
+
 
 _back_many = jax.jit(jax.vmap(back_project, in_axes=(None, None, 0)))
 
@@ -83,7 +103,8 @@ def calibrate_intrinsics(obs: Observations, flags: int = 0) -> tuple[Camera, dic
         raise CalibrationError(
             f"calibration_views: {len(used)} usable direct chessboard views (need at least 3 with 6 or more corners)"
         )
-    rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(objp, imgp, (w, h), None, None, flags=flags)
+    with _opencv_one_thread():
+        rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(objp, imgp, (w, h), None, None, flags=flags)
     cam = Camera.create(K[0, 0], K[1, 1], K[0, 2], K[1, 2], dist.ravel()[:5], w, h)
     poses = {i: Pose.from_rvec(r.ravel(), t.ravel()) for i, r, t in zip(used, rvecs, tvecs, strict=True)}
     notes = [f"{len(used)} views"] + ([f"skipped (under 6 corners): {', '.join(skipped)}"] if skipped else [])
