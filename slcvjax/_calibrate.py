@@ -385,6 +385,28 @@ def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, s
                 again.append(i)
         if again:
             run("A2: after re-flipping", again, True, robust_scale(0.1), [1.0, 0.0, 1.0, 1.0])
+
+    def other_starts(chosen, turned_only: bool) -> list[int]:
+        """Each board pose of the ``chosen`` trials swapped for its flipped twin, or for its pose
+        carried over from another view (:func:`_carried`), where that fits better, both refined
+        with the rig held (``turned_only``: only swaps that turn the board).  Returns the trials
+        where any board turned."""
+        chosen = [i for i in chosen if trials[i].pk.n_poses]
+        cands = {i: _candidates(trials[i].params, trials[i].pk, trials[i].masks) for i in chosen}
+        jobs = [(c, trials[i].arr, hold, trials[i].scale, None, _RTOL_TWIN) for i in chosen for c, hold in cands[i]]
+        res = iter(solver(jobs, loss, max_steps, size=2 * size))
+        turned = []
+        for i in chosen:
+            tr = trials[i]
+            n_moved = 0
+            for _ in cands[i]:
+                tr.params, n = _keep_better(tr.params, next(res).params, tr.arr, loss, tr.scale, turned_only)
+                n_moved += n
+            if n_moved:
+                tr.passes[-1].result += f"; {n_moved} board pose(s) turned after it"
+                turned.append(i)
+        return turned
+
     # B: lasers refitted, then everything
     if "lasers" not in freeze:
         for tr in trials:
@@ -392,22 +414,23 @@ def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, s
             lasers, _ = fit_lasers(p.rig.camera, p.rig.mirror, tr.pk, unstack_poses(p.poses), tr.obs.n_lasers)
             tr.params = Params(Rig(p.rig.camera, p.rig.mirror, lasers), p.poses, p.chess)
     run("B: joint", every, False, robust_scale(0.05))
-    # boards whose flipped twin (refined with dots and spots, the rig held) fits better are swapped
+    # boards whose other starts (refined with dots and spots, the rig held) fit better are swapped
     for tr in trials:
         tr.scale = robust_scale(0.05)(tr)
     if "poses" not in freeze:
-        flip = [i for i, tr in enumerate(trials) if tr.pk.n_poses]
-        twins = {i: _twin(trials[i].params, trials[i].arr, trials[i].masks) for i in flip}
-        jobs = [(twins[i][0], trials[i].arr, twins[i][1], trials[i].scale, None, _RTOL_TWIN) for i in flip]
-        for i, res in zip(flip, solver(jobs, loss, max_steps, size=size), strict=True):
-            tr = trials[i]
-            tr.params, n_flipped = _keep_better(tr.params, res.params, tr.arr, loss, tr.scale)
-            if n_flipped:
-                tr.passes[-1].result += f"; {n_flipped} board pose(s) flipped after it"
+        other_starts(every, turned_only=False)
     # C: final pass at the re-estimated scale.  Every kind keeps weight 1: weighting each by
     # its own noise (the rim's is larger in rendered images) made the lasers worse from images
     # (benchmarks/images_vs_file.py), where the dots' errors are mostly systematic
     run("C: joint (final)", every, False, lambda tr: tr.scale, rtol=_RTOL_FINAL)
+    # a pose carried after B from a board still wrong then may be wrong yet: the other starts
+    # again, and C again where a board turned, until none turns (at most three times)
+    again = every if "poses" not in freeze else []
+    for _ in range(3):
+        again = other_starts(again, turned_only=True)
+        if not again:
+            break
+        run("C2: joint (after turning)", again, False, lambda tr: tr.scale, rtol=_RTOL_FINAL)
     out = []
     for tr in trials:
         cov = _covariance(tr.params, tr.arr, tr.masks, loss, tr.scale, kind_weight=jnp.ones(4, dtype=float))
@@ -448,16 +471,66 @@ def _twin(params: Params, arr: Packed, masks: Masks) -> tuple[Params, Masks]:
             xb[k, 0] = pts[dp == k].mean(axis=0)
     R2, t2 = _flipped(R, t, xb, np.ones((n_p, 1)))
     twin = Params(params.rig, Pose(jnp.asarray(R2), jnp.asarray(t2)), params.chess)
-    hold = Masks(jnp.zeros_like(masks.glob), jnp.concatenate([masks.blocks[:n_p], jnp.zeros(params.chess.t.shape[0])]))
-    return twin, hold
+    return twin, _hold_rig(params, masks)
 
 
-def _keep_better(params: Params, twin: Params, arr: Packed, loss: str, scale: float) -> tuple[Params, int]:
-    """``params`` with each board pose whose refined twin fits better swapped; how many turned."""
+def _carried(params: Params, pk: Packed, masks: Masks) -> tuple[Params, Masks]:
+    """Every board pose carried over rigidly from another view, and the masks that refine them.
+
+    Pose ``(v, b)`` becomes ``T_a(v) T_a(v0)^-1 T_b(v0)``: board ``a`` of view ``v`` and
+    view ``v0 != v`` chosen so that the fewest dots of ``a`` in ``v`` and of ``a`` and
+    ``b`` in ``v0`` is largest.  Poses with no such pair are kept.
+    """
+    R, t = np.asarray(params.poses.R), np.asarray(params.poses.t)
+    keys = pk.pose_keys
+    n_p = len(keys)
+    n_dots = np.bincount(np.asarray(pk.dot_pose), minlength=n_p)
+    by_view: dict[int, dict[str, int]] = {}
+    for k, (v, b) in enumerate(keys):
+        by_view.setdefault(v, {})[b] = k
+    R2, t2 = R.copy(), t.copy()
+    for k, (v, b) in enumerate(keys):
+        # the neighbour seen by the most dots, and the other view where it and b are best seen
+        best = (0, -1, -1, -1)  # (fewer dots of the pair in view v0, pose a in v, a in v0, b in v0)
+        for a, ka in by_view[v].items():
+            if a == b:
+                continue
+            for v0, boards in by_view.items():
+                if v0 != v and a in boards and b in boards:
+                    m = min(n_dots[ka], n_dots[boards[a]], n_dots[boards[b]])
+                    if m > best[0]:
+                        best = (m, ka, boards[a], boards[b])
+        _, ka, ka0, kb0 = best
+        if ka >= 0:  # T_b(v) = T_a(v) T_a(v0)^-1 T_b(v0)
+            r_ab = R[ka0].T @ R[kb0]
+            t_ab = R[ka0].T @ (t[kb0] - t[ka0])
+            R2[k], t2[k] = R[ka] @ r_ab, R[ka] @ t_ab + t[ka]
+    carried = Params(params.rig, Pose(jnp.asarray(R2), jnp.asarray(t2)), params.chess)
+    return carried, _hold_rig(params, masks)
+
+
+def _hold_rig(params: Params, masks: Masks) -> Masks:
+    """Masks that refine the board poses alone."""
+    n_p = params.poses.t.shape[0]
+    return Masks(jnp.zeros_like(masks.glob), jnp.concatenate([masks.blocks[:n_p], jnp.zeros(params.chess.t.shape[0])]))
+
+
+def _candidates(params: Params, pk: Packed, masks: Masks) -> list[tuple[Params, Masks]]:
+    """Other starts for every board pose, each with its masks: the flipped twin, the carried pose."""
+    return [_twin(params, pk, masks), _carried(params, pk, masks)]
+
+
+def _keep_better(
+    params: Params, twin: Params, arr: Packed, loss: str, scale: float, turned_only: bool = False
+) -> tuple[Params, int]:
+    """``params`` with each board pose whose refined other start fits better swapped (``turned_only``:
+    only those turned by it); how many turned."""
     n_p = params.poses.t.shape[0]
     c_now = np.asarray(_block_costs(params, arr, loss, scale))[:n_p]
     c_twin = np.asarray(_block_costs(twin, arr, loss, scale))[:n_p]
     better = c_twin < c_now - 1e-9
+    if turned_only:
+        better &= _turned(twin.poses, params.poses)
     if not better.any():
         return params, 0
     b = jnp.asarray(better)

@@ -10,11 +10,20 @@ import pytest
 
 import slcvjax as sj
 from slcvjax import _lm, cli
-from slcvjax._calibrate import _arrays, _covariance, _solve, calibrate, cramer_rao, laser_errors, to_calibration
+from slcvjax._calibrate import (
+    _arrays,
+    _carried,
+    _covariance,
+    _solve,
+    calibrate,
+    cramer_rao,
+    laser_errors,
+    to_calibration,
+)
 from slcvjax._io import observations_to_json, read_calibration, write_observations
 from slcvjax._problem import pack, stack_poses
 from slcvjax._simulate import make_scene, simulate
-from slcvjax._staged import CalibrationError, staged
+from slcvjax._staged import CalibrationError, calibrate_intrinsics, staged
 
 SCENE = dict(n_lasers=4, n_views=5)
 
@@ -56,6 +65,41 @@ def test_joint_solution_is_exact_on_exact_observations(exact):
     np.testing.assert_allclose(np.asarray(res.rig.mirror.apex), np.asarray(truth.rig.mirror.apex), atol=1e-7)
     pos, ang = laser_errors(res.rig, truth.rig, np.asarray(truth.rig.lasers.points))
     assert pos.max() < 1e-6 and ang.max() < 1e-8
+
+
+def test_carried_pose_is_the_truth_when_the_boards_stand_still(exact):
+    # the walls of the simulated box stand still relative to each other, so a pose carried
+    # from another view through a neighbouring board is the true pose itself
+    obs, truth = exact
+    pk = pack(obs)
+    params = _truth_params(truth, pk)
+    masks = _lm.make_masks(params)
+    carried, _ = _carried(params, pk, masks)
+    np.testing.assert_allclose(np.asarray(carried.poses.R), np.asarray(params.poses.R), atol=1e-12)
+    np.testing.assert_allclose(np.asarray(carried.poses.t), np.asarray(params.poses.t), atol=1e-9)
+    # a pose far off (turned 150 deg about the board's x axis, moved 300 mm) is carried back
+    k = 2
+    R = np.asarray(params.poses.R).copy()
+    t = np.asarray(params.poses.t).copy()
+    c, s = np.cos(np.radians(150.0)), np.sin(np.radians(150.0))
+    R[k] = R[k] @ np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+    t[k] += np.array([300.0, -200.0, 100.0])
+    wrong = _lm.Params(params.rig, sj.Pose(jnp.asarray(R), jnp.asarray(t)), params.chess)
+    carried, hold = _carried(wrong, pk, masks)
+    np.testing.assert_allclose(np.asarray(carried.poses.R[k]), np.asarray(params.poses.R[k]), atol=1e-12)
+    np.testing.assert_allclose(np.asarray(carried.poses.t[k]), np.asarray(params.poses.t[k]), atol=1e-9)
+    assert not np.any(np.asarray(hold.glob)) and np.all(np.asarray(hold.blocks)[: pk.n_poses])
+
+
+def test_intrinsics_are_reproducible():
+    # OpenCV's threaded calibrateCamera summed in a varying order (intrinsics differing by
+    # ~4e-8 from call to call), which made whole calibrations differ from run to run
+    obs, _ = simulate(make_scene("paper", **SCENE), noise=0.5, seed=3)
+    threads = cv2.getNumThreads()
+    cams = [np.asarray(calibrate_intrinsics(obs)[0].params()) for _ in range(5)]
+    for cam in cams[1:]:
+        np.testing.assert_array_equal(cam, cams[0])
+    assert cv2.getNumThreads() == threads
 
 
 def test_joint_lowers_the_cost_converges_and_estimates_sigma(scene):
