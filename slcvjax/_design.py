@@ -17,7 +17,8 @@ Jacobian itself, so the reflection point's second derivatives enter (exact, by
 :func:`._newton.exact_second_order`).  Which points are visible and which wall a beam
 meets are decided at the current poses and held while differentiating (they change
 discretely); a step is accepted only when the bound, re-evaluated with the new
-visibility, goes down (Adam steps with a backtracking length).
+visibility, goes down (Adam steps with a backtracking length; a view whose visibility a
+trial step changes is held in place for that step).
 
 The objective is the mean over lasers of the predicted direction variance divided by
 its value at the start, plus (``position_weight``) the same for the position variance:
@@ -244,6 +245,15 @@ def _objective(u, scale, rig, T_bw, chess, pk, sigma, n_v, ref_pos, ref_ang, pw)
 
 
 _objective_jit = jax.jit(_objective, static_argnames=("n_v",))
+
+
+@jax.jit
+def _visible(u, scale, rig, T_bw, pk):
+    """Whether each dot, then each spot, would be observed at the poses ``scale * tanh(u)``."""
+    w_dot, w_spot, _ = _weights(rig, _poses(scale * jnp.tanh(u), T_bw), pk, u.shape[0])
+    return jnp.concatenate([w_dot, w_spot])
+
+
 _value_and_grad_jit = jax.jit(jax.value_and_grad(_objective), static_argnames=("n_v",))
 
 
@@ -254,6 +264,8 @@ class _Compiled:
         self.pk, self.T_bw, self.chess = _problem(plan)
         self.scale = jnp.asarray(np.maximum(plan.scale, 1e-12))
         self.n_v = plan.views.shape[0]
+        # the view of each dot, then of each spot (poses are indexed 4 v + wall)
+        self.obs_view = np.concatenate([np.asarray(self.pk.dot_pose), np.asarray(self.pk.spot_pose)]) // 4
         self.args = (plan.rig, self.T_bw, self.chess, self.pk, jnp.asarray(float(plan.noise)))
 
     def predict(self, views):
@@ -261,6 +273,9 @@ class _Compiled:
 
     def objective(self, u, ref_pos, ref_ang, pw):
         return _objective_jit(u, self.scale, *self.args, self.n_v, ref_pos, ref_ang, pw)
+
+    def visible(self, u) -> np.ndarray:
+        return np.asarray(_visible(u, self.scale, self.args[0], self.T_bw, self.pk))
 
     def value_and_grad(self, u, ref_pos, ref_ang, pw):
         return _value_and_grad_jit(u, self.scale, *self.args, self.n_v, ref_pos, ref_ang, pw)
@@ -296,6 +311,30 @@ class DesignResult:
     timings: dict
 
 
+def _line_search(c: "_Compiled", u, step, lr, f0, ref_pos, ref_ang, pw):
+    """A step ``u - a * step`` (a <= lr) that lowers the objective: ``(u, f, a)``, or Nones.
+
+    A trial step that changes what a view sees (a dot leaving the image, a beam meeting
+    another wall) may raise the bound although the gradient, blind to visibility, says it
+    falls: such views are held in place and the step is tried again; otherwise the length
+    is halved (at most 8 tries).
+    """
+    held = np.zeros(c.n_v, dtype=bool)
+    seen = c.visible(u)
+    for _ in range(8):
+        u_new = u - lr * step * jnp.asarray(~held, dtype=float)[:, None]
+        f_new = float(c.objective(u_new, ref_pos, ref_ang, pw))
+        if np.isfinite(f_new) and f_new < f0:
+            return u_new, f_new, lr
+        changed = np.zeros(c.n_v, dtype=bool)
+        np.logical_or.at(changed, c.obs_view, c.visible(u_new) != seen)
+        if changed.any() and not (held | changed).all():
+            held |= changed
+        else:
+            lr *= 0.5
+    return None, None, None
+
+
 def optimise(
     plan: Plan,
     steps: int = 60,
@@ -306,8 +345,9 @@ def optimise(
     """Sensor poses within the plan's motion range that minimise the predicted laser error.
 
     Adam on ``u`` (pose = range * tanh(u)), each step shortened until the objective,
-    re-evaluated at the new poses (visibility included), goes down; stops after
-    ``steps`` gradient evaluations or when no step length helps.
+    re-evaluated at the new poses (visibility included), goes down, views whose visibility
+    the step changes held in place (:func:`_line_search`); where no step helps, Adam starts
+    afresh once.  Stops after ``steps`` accepted steps or when a fresh start does not help.
     """
     t0 = time.perf_counter()
     c = _Compiled(plan)
@@ -326,25 +366,25 @@ def optimise(
 
         bar = tqdm(total=steps, desc="design", unit="step")
     lr = learning_rate
-    for k in range(1, steps + 1):
+    k = 0  # Adam's step count since its last restart
+    restarted = False
+    while len(history) <= steps:
+        k += 1
         m = b1 * m + (1 - b1) * grad
         v = b2 * v + (1 - b2) * grad**2
         step = (m / (1 - b1**k)) / (jnp.sqrt(v / (1 - b2**k)) + 1e-12)
-        accepted = False
-        for _ in range(6):
-            u_new = u - lr * step
-            f_new = float(c.objective(u_new, ref_pos, ref_ang, pw))
-            if np.isfinite(f_new) and f_new < history[-1]:
-                accepted = True
+        u_new, f_new, lr_used = _line_search(c, u, step, lr, history[-1], ref_pos, ref_ang, pw)
+        if u_new is None:
+            if restarted:
                 break
-            lr *= 0.5
+            # stuck: the moments carried the poses against a visibility edge; start Adam afresh
+            m, v, k, lr, restarted = jnp.zeros_like(u), jnp.zeros_like(u), 0, learning_rate, True
+            continue
+        restarted = False
         if bar is not None:
             bar.update(1)
-            bar.set_postfix(objective=f"{history[-1]:.3f}")
-        if not accepted:
-            break
-        u = u_new
-        lr = min(lr * 1.2, learning_rate)
+            bar.set_postfix(objective=f"{f_new:.3f}")
+        u, lr = u_new, min(lr_used * 1.2, learning_rate)
         f, grad = c.value_and_grad(u, ref_pos, ref_ang, pw)
         history.append(float(f))
     if bar is not None:
@@ -477,7 +517,7 @@ def plot_design(res: DesignResult, path) -> Path:
     ax.set_aspect("equal")
     ax.set_xlabel("x in the box (mm)")
     ax.set_ylabel("y in the box (mm)")
-    ax.set_title("sensor positions and yaw (arrows); dotted: the motion range")
+    ax.set_title("sensor positions and yaw (arrows)\ndotted: the motion range")
     ax.legend(fontsize=8)
     fig.suptitle(f"Experiment design: {res.before.views.shape[0]} views, noise {res.before.noise} px")
     fig.tight_layout()
