@@ -423,9 +423,10 @@ def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, s
     # its own noise (the rim's is larger in rendered images) made the lasers worse from images
     # (benchmarks/images_vs_file.py), where the dots' errors are mostly systematic
     run("C: joint (final)", every, False, lambda tr: tr.scale, rtol=_RTOL_FINAL)
-    # a pose carried after B from a board still wrong then may be wrong yet: the other starts
-    # again, and C again where a board turned, until none turns (at most three times)
-    again = every if "poses" not in freeze else []
+    # a pose carried after B from a board still wrong then may be wrong yet: where a board
+    # fits badly, the other starts again, and C again where a board turned, until none turns
+    # (at most three times)
+    again = [i for i in every if _misfit_boards(trials[i], loss)] if "poses" not in freeze else []
     for _ in range(3):
         again = other_starts(again, turned_only=True)
         if not again:
@@ -507,6 +508,16 @@ def _carried(params: Params, pk: Packed, masks: Masks) -> tuple[Params, Masks]:
             R2[k], t2[k] = R[ka] @ r_ab, R[ka] @ t_ab + t[ka]
     carried = Params(params.rig, Pose(jnp.asarray(R2), jnp.asarray(t2)), params.chess)
     return carried, _hold_rig(params, masks)
+
+
+def _misfit_boards(tr: "_Trial", loss: str) -> int:
+    """How many board poses of a calibration fit badly: a mean robust cost per dot and spot
+    above ``scale^2`` (with the Huber loss, a pixel error of 1.5 scales = 4.5 sigma on average;
+    a fitting one costs about ``sigma^2 = scale^2 / 9``)."""
+    n_p = tr.pk.n_poses
+    cost = np.asarray(_block_costs(tr.params, tr.arr, loss, tr.scale))[:n_p]
+    n = np.bincount(np.asarray(tr.pk.dot_pose), minlength=n_p) + np.bincount(np.asarray(tr.pk.spot_pose), minlength=n_p)
+    return int(np.sum(cost > tr.scale**2 * np.maximum(n, 1)))
 
 
 def _hold_rig(params: Params, masks: Masks) -> Masks:

@@ -1,6 +1,7 @@
 import copy
 import glob
 import json
+import types
 
 import cv2
 import jax
@@ -14,6 +15,7 @@ from slcvjax._calibrate import (
     _arrays,
     _carried,
     _covariance,
+    _misfit_boards,
     _solve,
     calibrate,
     cramer_rao,
@@ -85,6 +87,10 @@ def test_carried_pose_is_the_truth_when_the_boards_stand_still(exact):
     R[k] = R[k] @ np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
     t[k] += np.array([300.0, -200.0, 100.0])
     wrong = _lm.Params(params.rig, sj.Pose(jnp.asarray(R), jnp.asarray(t)), params.chess)
+    # the far-off pose is the one board that fits badly (a mean cost per dot above scale^2)
+    trial = types.SimpleNamespace(pk=pk, arr=_arrays(pk), scale=1.0)
+    assert _misfit_boards(types.SimpleNamespace(params=params, **vars(trial)), "huber") == 0
+    assert _misfit_boards(types.SimpleNamespace(params=wrong, **vars(trial)), "huber") == 1
     carried, hold = _carried(wrong, pk, masks)
     np.testing.assert_allclose(np.asarray(carried.poses.R[k]), np.asarray(params.poses.R[k]), atol=1e-12)
     np.testing.assert_allclose(np.asarray(carried.poses.t[k]), np.asarray(params.poses.t[k]), atol=1e-9)
