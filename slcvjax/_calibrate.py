@@ -393,14 +393,17 @@ def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, s
         where any board turned."""
         chosen = [i for i in chosen if trials[i].pk.n_poses]
         cands = {i: _candidates(trials[i].params, trials[i].pk, trials[i].masks) for i in chosen}
-        jobs = [(c, trials[i].arr, hold, trials[i].scale, None, _RTOL_TWIN) for i in chosen for c, hold in cands[i]]
-        res = iter(solver(jobs, loss, max_steps, size=2 * size))
+        solved: dict[int, list] = {i: [] for i in chosen}
+        for j in range(len(cands[chosen[0]]) if chosen else 0):  # one solve per kind of start: the shapes of a pass
+            jobs = [(cands[i][j][0], trials[i].arr, cands[i][j][1], trials[i].scale, None, _RTOL_TWIN) for i in chosen]
+            for i, res in zip(chosen, solver(jobs, loss, max_steps, size=size), strict=True):
+                solved[i].append(res)
         turned = []
         for i in chosen:
             tr = trials[i]
             n_moved = 0
-            for _ in cands[i]:
-                tr.params, n = _keep_better(tr.params, next(res).params, tr.arr, loss, tr.scale, turned_only)
+            for res in solved[i]:
+                tr.params, n = _keep_better(tr.params, res.params, tr.arr, loss, tr.scale, turned_only)
                 n_moved += n
             if n_moved:
                 tr.passes[-1].result += f"; {n_moved} board pose(s) turned after it"

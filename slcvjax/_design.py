@@ -320,12 +320,14 @@ def _line_search(c: "_Compiled", u, step, lr, f0, ref_pos, ref_ang, pw):
     is halved (at most 8 tries).
     """
     held = np.zeros(c.n_v, dtype=bool)
-    seen = c.visible(u)
+    seen = None
     for _ in range(8):
         u_new = u - lr * step * jnp.asarray(~held, dtype=float)[:, None]
         f_new = float(c.objective(u_new, ref_pos, ref_ang, pw))
         if np.isfinite(f_new) and f_new < f0:
             return u_new, f_new, lr
+        if seen is None:
+            seen = c.visible(u)
         changed = np.zeros(c.n_v, dtype=bool)
         np.logical_or.at(changed, c.obs_view, c.visible(u_new) != seen)
         if changed.any() and not (held | changed).all():
