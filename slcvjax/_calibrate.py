@@ -535,23 +535,23 @@ def _candidates(params: Params, pk: Packed, masks: Masks) -> list[tuple[Params, 
 
 
 def _keep_better(
-    params: Params, twin: Params, arr: Packed, loss: str, scale: float, turned_only: bool = False
+    params: Params, other: Params, arr: Packed, loss: str, scale: float, turned_only: bool = False
 ) -> tuple[Params, int]:
     """``params`` with each board pose whose refined other start fits better swapped (``turned_only``:
     only those turned by it); how many turned."""
     n_p = params.poses.t.shape[0]
     c_now = np.asarray(_block_costs(params, arr, loss, scale))[:n_p]
-    c_twin = np.asarray(_block_costs(twin, arr, loss, scale))[:n_p]
-    better = c_twin < c_now - 1e-9
+    c_other = np.asarray(_block_costs(other, arr, loss, scale))[:n_p]
+    better = c_other < c_now - 1e-9
     if turned_only:
-        better &= _turned(twin.poses, params.poses)
+        better &= _turned(other.poses, params.poses)
     if not better.any():
         return params, 0
     b = jnp.asarray(better)
     poses = Pose(
-        jnp.where(b[:, None, None], twin.poses.R, params.poses.R), jnp.where(b[:, None], twin.poses.t, params.poses.t)
+        jnp.where(b[:, None, None], other.poses.R, params.poses.R), jnp.where(b[:, None], other.poses.t, params.poses.t)
     )
-    return Params(params.rig, poses, params.chess), int(np.sum(better & _turned(twin.poses, params.poses)))
+    return Params(params.rig, poses, params.chess), int(np.sum(better & _turned(other.poses, params.poses)))
 
 
 def _turned(a: Pose, b: Pose, degrees: float = 10.0) -> np.ndarray:
