@@ -392,17 +392,25 @@ def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, s
         with the rig held (``turned_only``: only swaps that turn the board).  Returns the trials
         where any board turned."""
         chosen = [i for i in chosen if trials[i].pk.n_poses]
-        cands = {i: _candidates(trials[i].params, trials[i].pk, trials[i].masks) for i in chosen}
-        solved: dict[int, list] = {i: [] for i in chosen}
-        for j in range(len(cands[chosen[0]]) if chosen else 0):  # one solve per kind of start: the shapes of a pass
-            jobs = [(cands[i][j][0], trials[i].arr, cands[i][j][1], trials[i].scale, None, _RTOL_TWIN) for i in chosen]
-            for i, res in zip(chosen, solver(jobs, loss, max_steps, size=size), strict=True):
-                solved[i].append(res)
+        starts = [_candidates(trials[i].params, trials[i].pk, trials[i].masks) for i in chosen]
+        # one solve per kind of start over the chosen trials: the batch shapes of a pass
+        solved = [
+            solver(
+                [
+                    (c, trials[i].arr, hold, trials[i].scale, None, _RTOL_TWIN)
+                    for i, (c, hold) in zip(chosen, kind, strict=True)
+                ],
+                loss,
+                max_steps,
+                size=size,
+            )
+            for kind in zip(*starts, strict=True)
+        ]
         turned = []
-        for i in chosen:
+        for n_i, i in enumerate(chosen):
             tr = trials[i]
             n_moved = 0
-            for res in solved[i]:
+            for res in (kind[n_i] for kind in solved):
                 tr.params, n = _keep_better(tr.params, res.params, tr.arr, loss, tr.scale, turned_only)
                 n_moved += n
             if n_moved:
