@@ -31,7 +31,7 @@ from bench_forward import machine
 from scipy.optimize import least_squares
 
 from slcvjax import _lm
-from slcvjax._calibrate import _arrays, calibrate, calibrate_many
+from slcvjax._calibrate import calibrate, calibrate_many
 from slcvjax._problem import pack, stack_poses
 from slcvjax._simulate import make_scene, simulate
 
@@ -46,7 +46,7 @@ def problem(n_views: int, seed: int = 1):
     dg = rng.normal(0, 1e-3, p_true.n_global)
     dp = rng.normal(0, 1e-3, (p_true.n_blocks, 6))
     start = p_true.retract(jnp.asarray(dg), jnp.asarray(dp))
-    return start, _arrays(pk), _lm.make_masks(start)
+    return start, pk.arrays(), _lm.make_masks(start)
 
 
 solve = jax.jit(_lm.solve, static_argnames=("loss", "max_steps"))

@@ -25,7 +25,6 @@ import numpy as np
 from bench_forward import machine
 
 import slcvjax as sj
-from slcvjax._calibrate import _arrays
 
 
 def main() -> None:
@@ -35,7 +34,7 @@ def main() -> None:
     args = ap.parse_args()
     obs, _ = sj.simulate(sj.make_scene("paper"), noise=0.5, seed=0)
     res = sj.calibrate(obs)
-    arr = _arrays(res.packed)
+    arr = res.packed.arrays()
 
     t0 = time.perf_counter()
     p0, steps = sj.stationary_point(res.params, arr, res.masks, res.loss, res.scale)

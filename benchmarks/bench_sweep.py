@@ -30,7 +30,7 @@ import numpy as np
 from bench_forward import machine
 
 from slcvjax import _lm
-from slcvjax._calibrate import _arrays, calibrate_many
+from slcvjax._calibrate import calibrate_many
 from slcvjax._problem import pack, stack_poses
 from slcvjax._simulate import make_scene, simulate
 
@@ -48,7 +48,7 @@ def trials(n: int):
         dg = rng.normal(0, 1e-3, p_true.n_global)
         dp = rng.normal(0, 1e-3, (p_true.n_blocks, 6))
         starts.append(p_true.retract(jnp.asarray(dg), jnp.asarray(dp)))
-        packs.append(_arrays(pk))
+        packs.append(pk.arrays())
     masks = _lm.make_masks(starts[0])
     return starts, packs, masks
 

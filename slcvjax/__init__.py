@@ -3,11 +3,25 @@
 Precision policy: calibration is done in float64.  Importing ``slcvjax`` turns on
 ``jax_enable_x64``; arrays made by the library are float64 unless a benchmark
 documents a float32 path as safe.  Units are millimetres and radians.
+
+Importing ``slcvjax`` also turns on JAX's persistent compilation cache
+(:mod:`slcvjax._cache`: ``SLCVJAX_CACHE_DIR`` chooses the folder, ``off`` disables it);
+``compilation_cache_dir()`` says which folder is in use.
 """
 
 import jax
 
 jax.config.update("jax_enable_x64", True)
+
+from . import _cache  # noqa: E402
+
+_CACHE_DIR = _cache.enable()
+
+
+def compilation_cache_dir():
+    """The folder of the persistent compilation cache in use (a ``pathlib.Path``), or None where it is off."""
+    return _CACHE_DIR
+
 
 from ._calibrate import (  # noqa: E402
     CalibrationResult,
@@ -87,6 +101,7 @@ __all__ = [
     "back_project",
     "calibrate",
     "calibrate_many",
+    "compilation_cache_dir",
     "cramer_rao",
     "differentiable_solution",
     "distort",

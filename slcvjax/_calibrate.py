@@ -13,7 +13,6 @@ C. the same with sigma re-estimated at B's solution (the final pass).
 It returns the joint result with its covariance, and the staged result beside it.
 """
 
-import dataclasses
 import functools
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -34,19 +33,39 @@ from ._lm import (
     LMResult,
     Masks,
     Params,
-    block_costs_of_rows,
+    block_costs,
     covariance,
+    covariance_of_linearisation,
+    loss_index,
     make_masks,
-    n_observations,
-    residual_rows,
+    pad_masks,
+    pad_params,
     solve,
+    unpad_params,
 )
 from ._pose import Pose
-from ._problem import Packed, pack, stack_poses, unstack_poses
+from ._problem import Layout, Packed, pack, stack_poses, unstack_poses
 from ._rig import Rig, project_board_points, project_rim, project_spots
 from ._staged import CalibrationError, Staged, _flipped, board_poses, fit_lasers, staged
 
-_solve = jax.jit(solve, static_argnames=("loss", "max_steps"))
+_solve_jit = jax.jit(solve)
+
+
+def _solve(params: Params, arr: Packed, masks: Masks, loss: str, scale, max_steps: int, rtol=1e-10, kind_weight=None):
+    """:func:`._lm.solve` compiled once: the loss, the step limit, the tolerance and the kind
+    weights are values, so every pass, the covariance, the bound and the reports share it."""
+    return _solve_jit(
+        params,
+        arr,
+        masks,
+        loss=jnp.asarray(loss_index(loss)),
+        scale=jnp.asarray(scale, dtype=float),
+        max_steps=jnp.asarray(max_steps),
+        rtol=jnp.asarray(rtol, dtype=float),
+        kind_weight=_kind_weight(kind_weight),
+    )
+
+
 # The passes before the last only have to bring the next one into its basin; the last
 # converges to round-off.  The flipped twins are refined only far enough to compare
 # their fit with the poses they may replace (the final pass refines the winners), and
@@ -55,30 +74,47 @@ _RTOL_START = 1e-5
 _RTOL_TWIN = 1e-4
 _RTOL_FINAL = 1e-10
 _covariance = jax.jit(covariance, static_argnames=("loss",))
-_rows = jax.jit(residual_rows)
+_covariance_of_linearisation = jax.jit(covariance_of_linearisation)
+_block_costs_jit = jax.jit(block_costs, static_argnames=("n_blocks",))
 
 RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))  # median of |r| / sigma for 2D Gaussian r
 HALF_NORMAL_MEDIAN = 0.6744897501960817  # median of |r| / sigma for 1D Gaussian r
 
 
-def _arrays(pk: Packed) -> Packed:
-    """``pk`` without its static keys, so problems of the same sizes share one compilation."""
-    return dataclasses.replace(pk, pose_keys=(), chess_keys=())
+def _linearisation(params: Params, pk: Packed, masks: Masks | None = None, loss: str = "huber", scale=1.0):
+    """The padded problem's layout and its :class:`._lm.Linearisation` at ``params`` (the
+    compiled solve with no step)."""
+    layout = Layout.of(pk)
+    masks = make_masks(params) if masks is None else masks
+    res = _solve(pad_params(layout, params), layout.pad_packed(pk), pad_masks(layout, masks), loss, scale, 0)
+    return layout, res.linearisation
 
 
-@jax.jit
-def _observation_norms(params: Params, arr: Packed):
-    rows = residual_rows(params, arr)
-    n_obs = n_observations(arr)
-    r2 = jax.ops.segment_sum(rows.r**2, rows.obs, num_segments=n_obs)
-    kind = jax.ops.segment_max(rows.kind, rows.obs, num_segments=n_obs)
-    ok = jax.ops.segment_min(rows.valid.astype(int), rows.obs, num_segments=n_obs) > 0
-    return jnp.sqrt(r2), kind, ok
+def _table(params: Params, pk: Packed):
+    layout, lin = _linearisation(params, pk)
+    return layout, lin.table
 
 
 def _per_observation(params: Params, pk: Packed) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per observation: its 2D residual norm (px), its kind and whether it is valid."""
-    return tuple(np.asarray(a) for a in _observation_norms(params, _arrays(pk)))
+    layout, t = _table(params, pk)
+    return tuple(layout.unpad_observations(a) for a in (np.sqrt(np.asarray(t.sq)), t.kind, t.valid))
+
+
+def _block_costs(params: Params, pk: Packed, loss: str, scale: float) -> np.ndarray:
+    """Per pose block (board poses, then direct views) the robust cost of its observations."""
+    layout, t = _table(params, pk)
+    costs = _block_costs_jit(t, n_blocks=layout.cap[4] + layout.cap[5], loss=jnp.asarray(loss_index(loss)), scale=scale)
+    return layout.unpad_blocks(costs)
+
+
+def covariance_of(params: Params, pk: Packed, masks: Masks, loss: str, scale, sigma: float | None = None) -> Covariance:
+    """:func:`._lm.covariance` of the problem ``pk`` (every kind weighted 1), through its shape buckets."""
+    layout, lin = _linearisation(params, pk, masks, loss, scale)
+    cov = _covariance_of_linearisation(
+        lin, pad_masks(layout, masks), None if sigma is None else jnp.asarray(sigma, dtype=float)
+    )
+    return cov._replace(blocks=jnp.asarray(layout.unpad_blocks(cov.blocks)))
 
 
 def kind_sigmas(params: Params, pk: Packed, min_count: int = 10) -> np.ndarray:
@@ -249,13 +285,10 @@ def _kind_weight(kind_weight) -> jnp.ndarray:
 
 def _solve_loop(jobs: list[tuple], loss: str, max_steps: int, size: int | None = None) -> list[LMResult]:
     """Each job ``(params, arr, masks, scale, kind_weight, rtol)`` through the compiled solve (``size``: unused)."""
-    return [
-        _solve(p, a, m, loss=loss, scale=sc, max_steps=max_steps, rtol=rt, kind_weight=_kind_weight(kw))
-        for p, a, m, sc, kw, rt in jobs
-    ]
+    return [_solve(p, a, m, loss, sc, max_steps, rt, kw) for p, a, m, sc, kw, rt in jobs]
 
 
-@functools.partial(jax.jit, static_argnames=("loss", "max_steps"))
+@jax.jit
 def _solve_batched(params, arr, masks, scale, kind_weight, rtol, loss, max_steps):
     def one(p, a, m, sc, kw, rt):
         return solve(p, a, m, loss=loss, scale=sc, max_steps=max_steps, rtol=rt, kind_weight=kw)
@@ -300,7 +333,7 @@ def _solve_vmap(jobs: list[tuple], loss: str, max_steps: int, size: int | None =
         if sharding is not None:
             # every process holds the whole batch (the same on each): each device takes its rows
             batch = jax.tree_util.tree_map(functools.partial(_place, sharding=sharding), batch)
-        res = _solve_batched(*batch, loss=loss, max_steps=max_steps)
+        res = _solve_batched(*batch, loss=jnp.asarray(loss_index(loss)), max_steps=jnp.asarray(max_steps))
         if not res.cost.is_fully_addressable:  # several hosts: every process gets every trial
             from jax.experimental import multihost_utils
 
@@ -330,7 +363,8 @@ class _Trial:
         self.params = Params(Rig(st.camera, st.mirror, st.lasers), stack_poses(st.poses), chess_stack)
         self.masks = make_masks(self.params, set(freeze))
         self.mask_a = make_masks(self.params, set(freeze) | {"lasers"})
-        self.arr = _arrays(self.pk)
+        self.layout = Layout.of(self.pk)
+        self.arr = self.layout.pad_packed(self.pk)
         self.passes: list[JointPass] = []
         self.scale = 1.0
 
@@ -346,7 +380,7 @@ def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, s
         for i in chosen:
             trials[i].scale = scale(trials[i])
         jobs = [
-            (tr.params, tr.arr, tr.mask_a if lasers_held else tr.masks, tr.scale, kind_weight, rtol)
+            _job(tr, tr.params, tr.mask_a if lasers_held else tr.masks, kind_weight, rtol)
             for tr in (trials[i] for i in chosen)
         ]
         for i, res in zip(chosen, solver(jobs, loss, max_steps, size=size), strict=True):
@@ -361,7 +395,7 @@ def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, s
                     float(tr.scale),
                 )
             )
-            tr.params = res.params
+            tr.params = unpad_params(tr.layout, res.params)
         if bar is not None:
             bar.set_postfix_str(name.split(":")[0])
 
@@ -396,10 +430,7 @@ def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, s
         # one solve per kind of start over the chosen trials: the batch shapes of a pass
         solved = [
             solver(
-                [
-                    (c, trials[i].arr, hold, trials[i].scale, None, _RTOL_TWIN)
-                    for i, (c, hold) in zip(chosen, kind, strict=True)
-                ],
+                [_job(trials[i], c, hold, None, _RTOL_TWIN) for i, (c, hold) in zip(chosen, kind, strict=True)],
                 loss,
                 max_steps,
                 size=size,
@@ -411,7 +442,8 @@ def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, s
             tr = trials[i]
             n_moved = 0
             for res in (kind[n_i] for kind in solved):
-                tr.params, n = _keep_better(tr.params, res.params, tr.arr, loss, tr.scale, turned_only)
+                other = unpad_params(tr.layout, res.params)
+                tr.params, n = _keep_better(tr.params, other, tr.pk, loss, tr.scale, turned_only)
                 n_moved += n
             if n_moved:
                 tr.passes[-1].result += f"; {n_moved} board pose(s) turned after it"
@@ -445,7 +477,7 @@ def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, s
         run("C2: joint (after turning)", again, False, lambda tr: tr.scale, rtol=_RTOL_FINAL)
     out = []
     for tr in trials:
-        cov = _covariance(tr.params, tr.arr, tr.masks, loss, tr.scale, kind_weight=jnp.ones(4, dtype=float))
+        cov = covariance_of(tr.params, tr.pk, tr.masks, loss, tr.scale)
         sigmas = kind_sigmas(tr.params, tr.pk)
         out.append(
             CalibrationResult(
@@ -464,12 +496,10 @@ def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, s
     return out
 
 
-_costs_of_rows = jax.jit(block_costs_of_rows, static_argnames=("n_obs", "n_blocks", "loss"))
-
-
-def _block_costs(params: Params, arr: Packed, loss: str, scale: float):
-    """Per pose block robust cost, through the residual function compiled for the reports."""
-    return _costs_of_rows(_rows(params, arr), n_observations(arr), params.n_blocks, loss, scale)
+def _job(tr: "_Trial", params: Params, masks: Masks, kind_weight, rtol: float) -> tuple:
+    """A solve of trial ``tr`` from ``params``: ``(params, arrays, masks, scale, kind_weight, rtol)``
+    padded to the trial's shape buckets."""
+    return (pad_params(tr.layout, params), tr.arr, pad_masks(tr.layout, masks), tr.scale, kind_weight, rtol)
 
 
 def _twin(params: Params, arr: Packed, masks: Masks) -> tuple[Params, Masks]:
@@ -526,7 +556,7 @@ def _misfit_boards(tr: "_Trial", loss: str) -> int:
     above ``scale^2`` (with the Huber loss, a pixel error of 1.5 scales = 4.5 sigma on average;
     a fitting one costs about ``sigma^2 = scale^2 / 9``)."""
     n_p = tr.pk.n_poses
-    cost = np.asarray(_block_costs(tr.params, tr.arr, loss, tr.scale))[:n_p]
+    cost = _block_costs(tr.params, tr.pk, loss, tr.scale)[:n_p]
     n = np.bincount(np.asarray(tr.pk.dot_pose), minlength=n_p) + np.bincount(np.asarray(tr.pk.spot_pose), minlength=n_p)
     return int(np.sum(cost > tr.scale**2 * np.maximum(n, 1)))
 
@@ -543,13 +573,13 @@ def _candidates(params: Params, pk: Packed, masks: Masks) -> list[tuple[Params, 
 
 
 def _keep_better(
-    params: Params, other: Params, arr: Packed, loss: str, scale: float, turned_only: bool = False
+    params: Params, other: Params, pk: Packed, loss: str, scale: float, turned_only: bool = False
 ) -> tuple[Params, int]:
     """``params`` with each board pose whose refined other start fits better swapped (``turned_only``:
     only those turned by it); how many turned."""
     n_p = params.poses.t.shape[0]
-    c_now = np.asarray(_block_costs(params, arr, loss, scale))[:n_p]
-    c_other = np.asarray(_block_costs(other, arr, loss, scale))[:n_p]
+    c_now = _block_costs(params, pk, loss, scale)[:n_p]
+    c_other = _block_costs(other, pk, loss, scale)[:n_p]
     better = c_other < c_now - 1e-9
     if turned_only:
         better &= _turned(other.poses, params.poses)
@@ -636,7 +666,7 @@ def cramer_rao(truth: Calibration, obs: Observations, sigma: float, packed: Pack
     params = Params(truth.rig, poses, chess_stack)
     masks = make_masks(params)
     # plain least squares (Huber at 1e9 px), sharing the compiled covariance of calibrate()
-    cov = _covariance(params, _arrays(pk), masks, "huber", 1e9, sigma=sigma, kind_weight=jnp.ones(4, dtype=float))
+    cov = covariance_of(params, pk, masks, "huber", 1e9, sigma=sigma)
     x_ref = laser_working_points(truth.rig, poses, pk)
     pos, ang = laser_std(truth.rig, np.asarray(cov.glob), x_ref)
     return {

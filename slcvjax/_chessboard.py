@@ -18,7 +18,7 @@ from ._io import CalibrationViewObs, Observations
 from ._lasers import Lasers
 from ._mirror import ConeMirror
 from ._pose import Pose
-from ._problem import pack, stack_poses, unstack_poses
+from ._problem import Layout, pack, stack_poses, unstack_poses
 from ._rig import Rig
 from ._staged import CalibrationError, calibrate_intrinsics
 
@@ -64,8 +64,8 @@ def calibrate_from_corners(
     names: list[str], corners: list[np.ndarray], points: np.ndarray, size: tuple[int, int]
 ) -> CameraCalibration:
     """Calibrate from detected corners: OpenCV's start, then the joint LM on the corners alone."""
-    from ._calibrate import _arrays, _solve
-    from ._lm import Params, make_masks, residual_rows
+    from ._calibrate import _per_observation, _solve
+    from ._lm import Params, make_masks, pad_masks, pad_params, unpad_params
 
     views = [
         CalibrationViewObs(n, "chess", c, np.ones(len(c), dtype=bool)) for n, c in zip(names, corners, strict=True)
@@ -80,11 +80,18 @@ def calibrate_from_corners(
     )
     params = Params(rig, Pose(jnp.zeros((0, 3, 3)), jnp.zeros((0, 3))), stack_poses([poses0[i] for i in pk.chess_keys]))
     masks = make_masks(params, {"mirror"})
-    res = _solve(params, _arrays(pk), masks, loss="linear", scale=1.0, max_steps=100)
-    params = res.params
-    rows = residual_rows(params, _arrays(pk))
-    r = np.asarray(rows.r).reshape(-1, 2)
-    per_pt = np.sum(r**2, axis=1)
+    layout = Layout.of(pk)
+    res = _solve(
+        pad_params(layout, params),
+        layout.pad_packed(pk),
+        pad_masks(layout, masks),
+        loss="linear",
+        scale=1.0,
+        max_steps=100,
+    )
+    params = unpad_params(layout, res.params)
+    norm, _, _ = _per_observation(params, pk)
+    per_pt = norm**2
     view_of = np.asarray(pk.chess_pose)
     per_view = {names[pk.chess_keys[k]]: float(np.sqrt(np.mean(per_pt[view_of == k]))) for k in range(pk.n_chess)}
     return CameraCalibration(

@@ -51,7 +51,7 @@ def _weights(kind_weight) -> Float[Array, "4"]:
 
 
 def _rho(r, k, robust: bool, loss: str, c):
-    """The LM's per-observation cost of residual ``r`` with kind weight ``k`` (see ``_lm._robust``)."""
+    """The LM's per-observation cost of residual ``r`` with kind weight ``k`` (see ``_lm.robust_observations``)."""
     sq = k * jnp.sum(r**2)
     return _lm.robust_cost(sq, loss, c)[0] if robust else 0.5 * sq
 
@@ -362,10 +362,10 @@ def sensitivity(result, x_ref: np.ndarray | None = None) -> Sensitivity:
     pixel's two columns are its derivative along u and v (only the component across the
     rim acts).
     """
-    from ._calibrate import _arrays, laser_working_points
+    from ._calibrate import laser_working_points
 
     pk = result.packed
-    arr = _arrays(pk)
+    arr = pk.arrays()
     kw = _weights(None)  # the final pass's kind weights
     params, steps = stationary_point(result.params, arr, result.masks, result.loss, result.scale, kw)
     lin = _linearise_jit(params, arr, result.masks, result.loss, jnp.asarray(result.scale, dtype=float), kw)

@@ -44,7 +44,7 @@ from ._camera import Camera, in_image, pixel_to_ray, project
 from ._lasers import Lasers, line_plane_intersection
 from ._mirror import ConeMirror, project_through_mirror
 from ._pose import Pose
-from ._problem import Packed
+from ._problem import Layout, Packed
 from ._rig import Rig
 from ._safe import safe_div, safe_norm
 
@@ -92,22 +92,45 @@ def _cm(cam: Camera, mir: ConeMirror, d):
     return cam.retract(d[:N_CAM]), mir.retract(d[N_CAM:N_CM])
 
 
-def _dot(d, cam, mir, R, t, xb, px):
-    c, m = _cm(cam, mir, d)
-    res = project_through_mirror(
-        c, m, Pose(R, t).retract(d[N_CM:]).apply(xb), rim_margin=RIM_MARGIN, apex_margin=APEX_MARGIN
-    )
+def _mirror_pixel(cam: Camera, mir: ConeMirror, x, px):
+    res = project_through_mirror(cam, mir, x, rim_margin=RIM_MARGIN, apex_margin=APEX_MARGIN)
     return res.uv - px, res.valid
 
 
-def _spot(d, cam, mir, lp, ld, R, t, px):
+def _spot_point(d_laser, lp, ld, pose: Pose):
+    """Where the laser ``(lp, ld)`` moved by ``d_laser`` (4) meets the plane of ``pose``."""
+    las = Lasers(lp[None], ld[None]).retract(d_laser[None])
+    return line_plane_intersection(las.points[0], las.directions[0], pose, forward_only=False)
+
+
+def _dot(d, cam, mir, R, t, xb, px):
+    """A dot's residual over its local parameters ``d`` (camera, mirror, board pose: 20)."""
     c, m = _cm(cam, mir, d)
-    las = Lasers(lp[None], ld[None]).retract(d[N_CM : N_CM + N_LAS][None])
-    x, ok = line_plane_intersection(
-        las.points[0], las.directions[0], Pose(R, t).retract(d[N_CM + N_LAS :]), forward_only=False
-    )
-    res = project_through_mirror(c, m, x, rim_margin=RIM_MARGIN, apex_margin=APEX_MARGIN)
-    return res.uv - px, ok & res.valid
+    return _mirror_pixel(c, m, Pose(R, t).retract(d[N_CM:]).apply(xb), px)
+
+
+def _spot(d, cam, mir, lp, ld, R, t, px):
+    """A spot's residual over its local parameters ``d`` (camera, mirror, laser, board pose: 24)."""
+    c, m = _cm(cam, mir, d)
+    x, ok = _spot_point(d[N_CM : N_CM + N_LAS], lp, ld, Pose(R, t).retract(d[N_CM + N_LAS :]))
+    r, valid = _mirror_pixel(c, m, x, px)
+    return r, ok & valid
+
+
+def _dot_point(d, R, t, xb):
+    """A dot's 3D point (camera frame) over ``d``: laser (4, unused) and board pose (6)."""
+    return Pose(R, t).retract(d[N_LAS:]).apply(xb), jnp.asarray(True)
+
+
+def _spot_point_local(d, lp, ld, R, t):
+    """A spot's 3D point over ``d``: its laser (4) and board pose (6)."""
+    return _spot_point(d[:N_LAS], lp, ld, Pose(R, t).retract(d[N_LAS:]))
+
+
+def _project_local(d, cam, mir, x, px):
+    """The residual of a point ``x`` seen through the mirror over ``d``: camera, mirror (14), the point (3)."""
+    c, m = _cm(cam, mir, d)
+    return _mirror_pixel(c, m, x + d[N_CM:], px)
 
 
 def rim_value(cam: Camera, mir: ConeMirror, uv: Float[Array, "2"]) -> tuple[Float[Array, ""], Bool[Array, ""]]:
@@ -154,30 +177,71 @@ class Rows(NamedTuple):
     pidx: Int[Array, " n"]  # pose block (NB = none)
     obs: Int[Array, " n"]  # observation id (for robust weights)
     kind: Int[Array, " n"]  # 0 dot, 1 spot, 2 rim, 3 chess
-    valid: Bool[Array, " n"]
+    valid: Bool[Array, " n"]  # the model predicts the observation (False for padding too)
+    present: Bool[Array, " n"]  # a real observation, not padding (see ._problem)
 
 
 KIND_NAMES = ("dot", "spot", "rim", "chess")
+RIM_CHUNK = 1 << 30  # the cheap kinds (rim, corners) in one map (measured: chunks of 128-512 were slower)
+CHUNK = 64  # observations through the mirror linearised per step of the loop over the real ones
 
 
-def _rows(params: Params, pk: Packed, with_jac: bool = True, rim_norm: Array | None = None) -> Rows:
+def map_real(f, args: tuple, regions: list[tuple[int, Array]], chunk: int = CHUNK):
+    """``jax.vmap(f)(*args)`` computed only where the rows are real (elsewhere zeros).
+
+    ``regions``: ``(start, count)`` per block of the rows (static start, traced count): the
+    real rows of a block are its first ``count``.  A loop over chunks of ``chunk`` rows
+    visits only the chunks that hold real rows, so the padding of a shape bucket costs no
+    projection.  Not reverse-differentiable (its trip count is traced).
+    """
+    n = args[0].shape[0]
+    k = min(chunk, n)
+    if k == 0:
+        return jax.vmap(f)(*args)
+    shapes = jax.eval_shape(jax.vmap(f), *(a[:k] for a in args))
+    out = jax.tree_util.tree_map(lambda sd: jnp.zeros((n,) + sd.shape[1:], sd.dtype), shapes)
+    n_chunks = [(count + k - 1) // k for _, count in regions]
+    firsts = [sum(n_chunks[:i]) for i in range(len(regions))]  # first chunk of each region
+
+    def body(i, out):
+        start = regions[0][0] + i * k
+        for (s, _), first in zip(regions[1:], firsts[1:], strict=True):
+            start = jnp.where(i >= first, s + (i - first) * k, start)
+        part = jax.vmap(f)(*(jax.lax.dynamic_slice_in_dim(a, start, k) for a in args))
+        # a chunk that runs past the end is moved back to fit, in the slice and the update alike
+        return jax.tree_util.tree_map(lambda o, p: jax.lax.dynamic_update_slice_in_dim(o, p, start, 0), out, part)
+
+    return jax.lax.fori_loop(0, sum(n_chunks), body, out)
+
+
+def _rows(
+    params: Params, pk: Packed, with_jac: bool = True, rim_norm: Array | None = None, real_only: bool = True
+) -> Rows:
     """Every residual row with its local Jacobian.
 
     ``rim_norm``: the rim rows' normalisations (:func:`rim_norms`), held as constants; by
     default those of ``params`` itself, so that the rim rows are the pixels' first-order
     distances from the rim (the Jacobian still holds them constant).  The LM passes the
     normalisation at its start, so that its cost and its Jacobian describe one function.
+    ``real_only``: project only the real dots and spots (:func:`map_real`); ``False`` maps
+    every row, padding included, and can be differentiated in reverse mode.
     """
     rig = params.rig
     cam, mir, las = rig.camera, rig.mirror, rig.lasers
     g = rig.tangent_dim
     nb = params.n_blocks
     n_p = params.poses.t.shape[0]
+    pres_d, pres_s, pres_r, pres_c = pk.present()
 
     def lin(fun, n_local, *args):
         z = jnp.zeros(n_local)
         if with_jac:
-            jac, (r, ok) = jax.jacfwd(lambda d: (fun(d, *args)[0], fun(d, *args)), has_aux=True)(z)
+
+            def f(d):
+                r, ok = fun(d, *args)
+                return r, (r, ok)
+
+            jac, (r, ok) = jax.jacfwd(f, has_aux=True)(z)
         else:
             r, ok = fun(z, *args)
             jac = jnp.zeros(r.shape + (n_local,))
@@ -185,19 +249,37 @@ def _rows(params: Params, pk: Packed, with_jac: bool = True, rim_norm: Array | N
 
     cm_idx = jnp.arange(N_CM)
     out = []
-    # dots
-    R, t = params.poses.R[pk.dot_pose], params.poses.t[pk.dot_pose]
-    r, j, ok = jax.vmap(lambda *a: lin(_dot, N_CM + 6, cam, mir, *a))(R, t, pk.dot_points, pk.dot_pixels)
-    n = r.shape[0]
-    jg = jnp.concatenate([j[:, :, :N_CM], jnp.zeros((n, 2, N_LAS))], axis=2)
-    gi = jnp.broadcast_to(jnp.concatenate([cm_idx, jnp.full(N_LAS, g)]), (n, 2, N_CM + N_LAS))
-    out.append((r, jg, gi, j[:, :, N_CM:], jnp.broadcast_to(pk.dot_pose[:, None], (n, 2)), ok, 0, 2))
-    # spots
-    R, t = params.poses.R[pk.spot_pose], params.poses.t[pk.spot_pose]
-    lp, ld = las.points[pk.spot_laser], las.directions[pk.spot_laser]
-    r, j, ok = jax.vmap(lambda *a: lin(_spot, N_CM + N_LAS + 6, cam, mir, *a))(lp, ld, R, t, pk.spot_pixels)
-    n = r.shape[0]
-    lidx = N_CM + N_LAS * pk.spot_laser[:, None] + jnp.arange(N_LAS)[None, :]
+
+    def mapped(f, args, regions, chunk=CHUNK):
+        return map_real(f, args, regions, chunk) if real_only else jax.vmap(f)(*args)
+
+    # dots and spots: first each one's 3D point with its derivative in its local laser (4,
+    # zero for a dot) and pose (6) parameters, then one projection through the mirror for
+    # both kinds, differentiated in camera, mirror and the point (17) and chained: the costly
+    # projection is traced once and carries 17 tangents, not 20 or 24
+    n_d, n_s = pk.dot_pose.shape[0], pk.spot_pose.shape[0]
+    pose = jnp.concatenate([pk.dot_pose, pk.spot_pose])
+    laser = pk.spot_laser
+    x_d, jx_d, ok_d = jax.vmap(lambda *a: lin(_dot_point, N_LAS + 6, *a))(
+        params.poses.R[pk.dot_pose], params.poses.t[pk.dot_pose], pk.dot_points
+    )
+    if las.n:
+        x_s, jx_s, ok_s = jax.vmap(lambda *a: lin(_spot_point_local, N_LAS + 6, *a))(
+            las.points[laser], las.directions[laser], params.poses.R[pk.spot_pose], params.poses.t[pk.spot_pose]
+        )
+    else:
+        x_s, jx_s, ok_s = jnp.zeros((n_s, 3)), jnp.zeros((n_s, 3, N_LAS + 6)), jnp.zeros(n_s, dtype=bool)
+    x = jnp.concatenate([x_d, x_s])
+    px = jnp.concatenate([pk.dot_pixels, pk.spot_pixels])
+    r, j, ok = mapped(
+        lambda x, px: lin(_project_local, N_CM + 3, cam, mir, x, px), (x, px), [(0, pk.counts[0]), (n_d, pk.counts[1])]
+    )
+    j = jnp.concatenate([j[:, :, :N_CM], j[:, :, N_CM:] @ jnp.concatenate([jx_d, jx_s])], axis=2)
+    ok = ok & jnp.concatenate([ok_d, ok_s])
+    is_spot = jnp.arange(n_d + n_s) >= n_d
+    laser = jnp.concatenate([jnp.zeros(n_d, dtype=laser.dtype), laser])
+    n = n_d + n_s
+    lidx = jnp.where(is_spot[:, None], N_CM + N_LAS * laser[:, None] + jnp.arange(N_LAS)[None, :], g)
     gi = jnp.concatenate([jnp.broadcast_to(cm_idx, (n, N_CM)), lidx], axis=1)
     out.append(
         (
@@ -205,34 +287,43 @@ def _rows(params: Params, pk: Packed, with_jac: bool = True, rim_norm: Array | N
             j[:, :, : N_CM + N_LAS],
             jnp.broadcast_to(gi[:, None, :], (n, 2, N_CM + N_LAS)),
             j[:, :, N_CM + N_LAS :],
-            jnp.broadcast_to(pk.spot_pose[:, None], (n, 2)),
+            jnp.broadcast_to(pose[:, None], (n, 2)),
             ok,
-            1,
+            jnp.where(is_spot, 1, 0),
+            jnp.concatenate([pres_d, pres_s]),
             2,
         )
     )
     # rim
     norm = jax.lax.stop_gradient(rim_norms(rig, pk) if rim_norm is None else rim_norm)
-    r, j, ok = jax.vmap(lambda uv, s: lin(_rim, N_CM, cam, mir, uv, s))(pk.rim_pixels, norm)
+    r, j, ok = mapped(
+        lambda uv, s: lin(_rim, N_CM, cam, mir, uv, s), (pk.rim_pixels, norm), [(0, pk.counts[2])], RIM_CHUNK
+    )
     n = r.shape[0]
     jg = jnp.concatenate([j, jnp.zeros((n, 1, N_LAS))], axis=2)
     gi = jnp.broadcast_to(jnp.concatenate([cm_idx, jnp.full(N_LAS, g)]), (n, 1, N_CM + N_LAS))
-    out.append((r, jg, gi, jnp.zeros((n, 1, 6)), jnp.full((n, 1), nb), ok, 2, 1))
+    out.append((r, jg, gi, jnp.zeros((n, 1, 6)), jnp.full((n, 1), nb), ok, jnp.full(n, 2), pres_r, 1))
     # chess corners
     R, t = params.chess.R[pk.chess_pose], params.chess.t[pk.chess_pose]
-    r, j, ok = jax.vmap(lambda *a: lin(_chess, N_CAM + 6, cam, *a))(R, t, pk.chess_points, pk.chess_pixels)
+    r, j, ok = mapped(
+        lambda *a: lin(_chess, N_CAM + 6, cam, *a),
+        (R, t, pk.chess_points, pk.chess_pixels),
+        [(0, pk.counts[3])],
+        RIM_CHUNK,
+    )
     n = r.shape[0]
     jg = jnp.concatenate([j[:, :, :N_CAM], jnp.zeros((n, 2, N_MIR + N_LAS))], axis=2)
     gi = jnp.broadcast_to(jnp.concatenate([jnp.arange(N_CAM), jnp.full(N_MIR + N_LAS, g)]), (n, 2, N_CM + N_LAS))
-    out.append((r, jg, gi, j[:, :, N_CAM:], jnp.broadcast_to(n_p + pk.chess_pose[:, None], (n, 2)), ok, 3, 2))
+    pi = jnp.broadcast_to(n_p + pk.chess_pose[:, None], (n, 2))
+    out.append((r, jg, gi, j[:, :, N_CAM:], pi, ok, jnp.full(n, 3), pres_c, 2))
 
     rows = []
     offset = 0
-    for r, jg, gi, jp, pi, ok, kind, m in out:
+    for r, jg, gi, jp, pi, ok, kind, present, m in out:
         n = r.shape[0]
         obs_id = jnp.broadcast_to(offset + jnp.arange(n)[:, None], (n, m))
         offset += n
-        okm = jnp.broadcast_to(ok[:, None], (n, m))
+        okm = jnp.broadcast_to((ok & present)[:, None], (n, m))
         rows.append(
             Rows(
                 jnp.where(okm, r, 0.0).reshape(-1),
@@ -241,8 +332,9 @@ def _rows(params: Params, pk: Packed, with_jac: bool = True, rim_norm: Array | N
                 jnp.where(okm[..., None], jp, 0.0).reshape(-1, 6),
                 pi.reshape(-1),
                 obs_id.reshape(-1),
-                jnp.full(n * m, kind),
+                jnp.broadcast_to(kind[:, None], (n, m)).reshape(-1),
                 okm.reshape(-1),
+                jnp.broadcast_to(present[:, None], (n, m)).reshape(-1),
             )
         )
     return Rows(*(jnp.concatenate(parts) for parts in zip(*rows, strict=True)))
@@ -255,20 +347,35 @@ def n_observations(pk: Packed) -> int:
 # ------------------------------------------------------------------ robust loss
 
 
-def block_costs(params: Params, pk: Packed, loss: str, scale) -> Float[Array, " NB"]:
+class ObservationTable(NamedTuple):
+    """Per observation (in the order of :class:`Rows`' ids): what the robust loss and the reports use."""
+
+    sq: Float[Array, " N"]  # squared residual norm (px^2), 0 where invalid
+    kind: Int[Array, " N"]  # 0 dot, 1 spot, 2 rim, 3 chess
+    valid: Bool[Array, " N"]  # the model predicts it
+    present: Bool[Array, " N"]  # real, not padding
+    block: Int[Array, " N"]  # its pose block (NB = none)
+
+
+def observation_table(rows: Rows, n_obs: int) -> ObservationTable:
+    """:class:`ObservationTable` of residual rows."""
+
+    def seg(x, op):
+        return op(x, rows.obs, num_segments=n_obs)
+
+    return ObservationTable(
+        seg(rows.r**2, jax.ops.segment_sum),
+        seg(rows.kind, jax.ops.segment_max),
+        seg(rows.valid.astype(jnp.int32), jax.ops.segment_min) > 0,
+        seg(rows.present.astype(jnp.int32), jax.ops.segment_max) > 0,
+        seg(rows.pidx, jax.ops.segment_max),
+    )
+
+
+def block_costs(table: ObservationTable, n_blocks: int, loss: str, scale) -> Float[Array, " NB"]:
     """The robust cost of the observations of each pose block (dots and spots of a board)."""
-    return block_costs_of_rows(_rows(params, pk, with_jac=False), n_observations(pk), params.n_blocks, loss, scale)
-
-
-def block_costs_of_rows(rows: Rows, n_obs: int, n_blocks: int, loss: str, scale) -> Float[Array, " NB"]:
-    """:func:`block_costs` from residual rows already evaluated."""
-    rho = _obs_costs(rows, n_obs, loss, jnp.asarray(scale, dtype=float))
-    block = jax.ops.segment_max(rows.pidx, rows.obs, num_segments=n_obs)
-    return jax.ops.segment_sum(rho, block, num_segments=n_blocks + 1)[:n_blocks]
-
-
-def _obs_costs(rows: Rows, n_obs: int, loss: str, scale):
-    return _robust(rows, n_obs, loss, scale, jnp.ones(4))[1]
+    _, rho = robust_observations(table, loss, jnp.asarray(scale, dtype=float), jnp.ones(4))
+    return jax.ops.segment_sum(rho, table.block, num_segments=n_blocks + 1)[:n_blocks]
 
 
 def robust_weights(rows: Rows, n_obs: int, loss: str, scale, kind_weight=None) -> tuple[Array, Array]:
@@ -279,38 +386,55 @@ def robust_weights(rows: Rows, n_obs: int, loss: str, scale, kind_weight=None) -
     so that ``scale`` (in units of ``sigma``) suits every kind.
     """
     kw = jnp.ones(4) if kind_weight is None else jnp.asarray(kind_weight, dtype=float)
-    w, rho, _ = _robust(rows, n_obs, loss, scale, kw)
+    w, rho = robust_observations(observation_table(rows, n_obs), loss, scale, kw)
     return w[rows.obs], jnp.sum(rho)
 
 
-def robust_cost(sq, loss: str, c):
+def loss_index(loss: "str | int | Array") -> "int | Array":
+    """The index in :data:`LOSSES` of a loss given by name (an index passes through).
+
+    Compiled functions take the index as a value, so that every loss shares one compilation.
+    """
+    if isinstance(loss, str):
+        if loss not in LOSSES:
+            raise ValueError(f"unknown loss {loss!r} (known: {', '.join(LOSSES)})")
+        return LOSSES.index(loss)
+    return loss
+
+
+def robust_cost(sq, loss: "str | int | Array", c):
     """``(rho, w)`` of whitened squared residual norms ``sq``: the robust cost and its IRLS
-    weight ``2 rho'(sq)``; smooth enough to be differentiated twice (``sq = 0`` included)."""
+    weight ``2 rho'(sq)``; smooth enough to be differentiated twice (``sq = 0`` included).
+
+    ``loss``: a name of :data:`LOSSES` or its index (a traced index selects among all three).
+    """
+    loss = loss_index(loss)
     norm = jnp.sqrt(jnp.maximum(sq, 1e-300))
-    if loss == "huber":
-        inside = norm <= c
-        return jnp.where(inside, 0.5 * sq, c * norm - 0.5 * c * c), jnp.where(inside, 1.0, c / norm)
-    if loss == "cauchy":
-        return 0.5 * c * c * jnp.log1p(sq / (c * c)), 1.0 / (1.0 + sq / (c * c))
-    return 0.5 * sq, jnp.ones_like(sq)
+    inside = norm <= c
+    huber = jnp.where(inside, 0.5 * sq, c * norm - 0.5 * c * c), jnp.where(inside, 1.0, c / norm)
+    cauchy = 0.5 * c * c * jnp.log1p(sq / (c * c)), 1.0 / (1.0 + sq / (c * c))
+    linear = 0.5 * sq, jnp.ones_like(sq)
+    if isinstance(loss, int):
+        return (huber, cauchy, linear)[loss]
+    return tuple(
+        jnp.where(loss == 0, h, jnp.where(loss == 1, ca, li)) for h, ca, li in zip(huber, cauchy, linear, strict=True)
+    )
 
 
-def _robust(rows: Rows, n_obs: int, loss: str, scale, kw):
-    """Per-observation IRLS weights, costs (invalid ones at a fixed penalty) and kinds."""
-    kind_obs = jax.ops.segment_max(rows.kind, rows.obs, num_segments=n_obs)
-    k = kw[kind_obs]
-    sq = k * jax.ops.segment_sum(rows.r**2, rows.obs, num_segments=n_obs)  # whitened
+def robust_observations(t: ObservationTable, loss: str, scale, kw) -> tuple[Array, Array]:
+    """Per observation: its IRLS weight and its cost (an invalid one at a fixed penalty, padding 0)."""
+    k = kw[t.kind]
+    sq = k * t.sq  # whitened
     # dots and spots; the rim and the chessboard corners stay plain (a robust rim made the
     # lasers from rendered images worse in benchmarks/images_vs_file.py)
-    robust = kind_obs <= 1
+    robust = t.kind <= 1
     rho, w = robust_cost(sq, loss, scale)
     w = jnp.where(robust, w, 1.0) * k
     rho = jnp.where(robust, rho, 0.5 * sq)
     # an invalid prediction (off the mirror, off the sensor) costs a fixed penalty, so that a
     # step cannot lower the cost by pushing observations out of the model's reach
-    valid = jax.ops.segment_min(rows.valid.astype(jnp.int32), rows.obs, num_segments=n_obs) > 0
-    rho = jnp.where(valid, rho, INVALID_PENALTY * k)
-    return w, rho, kind_obs
+    rho = jnp.where(t.valid, rho, jnp.where(t.present, INVALID_PENALTY * k, 0.0))
+    return jnp.where(t.present, w, 0.0), rho
 
 
 # ------------------------------------------------------------------ normal equations
@@ -412,12 +536,39 @@ def make_masks(params: Params, freeze: frozenset | set | tuple = ()) -> Masks:
     return Masks(glob, blocks)  # strongly typed, so every pass shares one compilation
 
 
+def pad_params(layout: Layout, params: Params) -> Params:
+    """``params`` with its board and direct-view poses padded to ``layout``'s bucket sizes."""
+    return Params(params.rig, layout.pad_poses(params.poses), layout.pad_poses(params.chess, chess=True))
+
+
+def unpad_params(layout: Layout, params: Params) -> Params:
+    """The real poses of padded ``params``."""
+    return Params(params.rig, layout.unpad_poses(params.poses), layout.unpad_poses(params.chess, chess=True))
+
+
+def pad_masks(layout: Layout, masks: Masks) -> Masks:
+    """``masks`` over padded pose blocks: a padded block is frozen (and has no observation)."""
+    return Masks(masks.glob, jnp.asarray(layout.pad_blocks(masks.blocks), dtype=float))
+
+
+class Linearisation(NamedTuple):
+    """The problem linearised at a point: the normal equations and what the covariance and reports need."""
+
+    normal: Normal
+    table: ObservationTable
+    seen_glob: Float[Array, " G"]  # 1 where a global parameter has a nonzero Jacobian column
+    seen_blocks: Float[Array, " NB"]  # 1 where a pose block has a valid observation
+    n_valid: Float[Array, ""]  # valid scalar residuals
+    weighted_sq: Float[Array, ""]  # sum of w r^2
+
+
 class LMResult(NamedTuple):
     params: Params
     cost: Float[Array, ""]
     initial_cost: Float[Array, ""]
     steps: Int[Array, ""]
     result: Int[Array, ""]
+    linearisation: Linearisation  # at ``params`` (with the rim normalisation held at the start)
 
 
 def _cost(params, pk, loss, scale, kind_weight, rim_norm=None):
@@ -426,26 +577,54 @@ def _cost(params, pk, loss, scale, kind_weight, rim_norm=None):
     return c
 
 
+def linearise(params: Params, pk: Packed, masks: Masks, loss: str, scale, kind_weight, rim_norm=None):
+    """:class:`Linearisation` at ``params`` and the robust cost there."""
+    g, nb, n_obs = params.n_global, params.n_blocks, n_observations(pk)
+    rows = _rows(params, pk, rim_norm=rim_norm)
+    table = observation_table(rows, n_obs)
+    w_obs, rho = robust_observations(table, loss, scale, kind_weight)
+    w = w_obs[rows.obs]
+    ne = normal_equations(rows, w, g, nb, masks.glob, masks.blocks)
+    seen_blocks = (
+        jax.ops.segment_sum(
+            (rows.valid & (jnp.sum(jnp.abs(rows.jp), axis=1) > 0)).astype(float), rows.pidx, num_segments=nb + 1
+        )[:nb]
+        > 0
+    )
+    seen_glob = jnp.zeros(g + 1).at[rows.gidx].add(jnp.abs(rows.jg))[:g] > 0
+    lin = Linearisation(
+        ne,
+        table,
+        seen_glob.astype(float),
+        seen_blocks.astype(float),
+        jnp.sum(rows.valid.astype(float)),
+        jnp.sum(w * rows.r**2),
+    )
+    return lin, jnp.sum(rho)
+
+
 def solve(
     params: Params,
     pk: Packed,
     masks: Masks,
-    loss: str = "huber",
+    loss: "str | int | Array" = "huber",
     scale: float | Array = 1.0,
-    max_steps: int = 100,
-    rtol: float = 1e-10,
+    max_steps: int | Array = 100,
+    rtol: float | Array = 1e-10,
     kind_weight: Array | None = None,
 ) -> LMResult:
     """Levenberg-Marquardt from ``params``; returns the solution and a result code.
 
     Stops when an accepted step lowers the cost by less than ``rtol`` (relative) or
     moves no parameter noticeably, when the damping saturates (stalled), or after
-    ``max_steps`` linearisations.  ``kind_weight`` (4,) weighs dots, spots, rim and
-    chess corners (0 drops a kind; freeze what it alone determines).
+    ``max_steps`` linearisations; then linearises once more where it stopped (the
+    result's ``linearisation``).  ``max_steps = 0`` only linearises at ``params``: the
+    covariance, the bound and the reports use that, so that one compiled solve serves
+    them all (``max_steps`` and ``rtol`` are values, not compile-time constants).
+    ``kind_weight`` (4,) weighs dots, spots, rim and chess corners (0 drops a kind;
+    freeze what it alone determines).
     """
-    if loss not in LOSSES:
-        raise ValueError(f"unknown loss {loss!r} (known: {', '.join(LOSSES)})")
-    g, nb, n_obs = params.n_global, params.n_blocks, n_observations(pk)
+    loss = loss_index(loss)
     scale = jnp.asarray(scale, dtype=float)
     kw = jnp.ones(4) if kind_weight is None else jnp.asarray(kind_weight, dtype=float)
 
@@ -454,18 +633,11 @@ def solve(
     # every step was rejected (measured: 20-30 wasted linearisations per pass)
     rim_norm = rim_norms(params.rig, pk)
 
-    def linearise(p):
-        rows = _rows(p, pk, rim_norm=rim_norm)
-        w, c = robust_weights(rows, n_obs, loss, scale, kw)
-        return normal_equations(rows, w, g, nb, masks.glob, masks.blocks), c
+    def lin_at(p):
+        return linearise(p, pk, masks, loss, scale, kw, rim_norm)
 
-    # the Jacobian is taken at the top of an iteration when the last step was accepted (or
-    # at the start), so the residual function with derivatives is traced only once
-    def body(s):
-        p, ne, cost, c0, lam, it, done, code, stale = s
-        ne, cost = jax.lax.cond(stale, linearise, lambda q: (ne, cost), p)
-        c0 = jnp.where(it == 0, cost, c0)
-        dg, dp = schur_step(ne, lam)
+    def step(p, lin, cost, lam, it):
+        dg, dp = schur_step(lin.normal, lam)
         cand = p.retract(dg, dp)
         c_new = _cost(cand, pk, loss, scale, kw, rim_norm)
         ok = jnp.isfinite(c_new) & (c_new < cost)
@@ -479,26 +651,38 @@ def solve(
         flat = jnp.abs(cost - c_new) <= 1e-12 * cost
         converged = (ok & (small | tiny)) | (~ok & (tiny | flat))
         stalled = lam > 1e10
-        out_of_steps = it >= max_steps
         code = jnp.where(converged, CONVERGED, jnp.where(stalled, STALLED, MAX_STEPS))
-        done = converged | stalled | out_of_steps
-        return p, ne, cost_out, c0, lam, it, done, code, ok
+        done = converged | stalled | (it >= max_steps)
+        return p, cost_out, lam, it, done, code, ok
 
-    ne0 = Normal(jnp.zeros((g, g)), jnp.zeros(g), jnp.zeros((nb, g, 6)), jnp.zeros((nb, 6, 6)), jnp.zeros((nb, 6)))
+    # the Jacobian is taken at the top of an iteration when the last step was accepted (or
+    # at the start), so the residual function with derivatives is traced only once; after
+    # the last step one more iteration only linearises, at the solution
+    def body(s):
+        p, lin, cost, c0, lam, it, done, code, stale = s
+        lin, cost = jax.lax.cond(stale, lin_at, lambda q: (lin, cost), p)
+        c0 = jnp.where(it == 0, cost, c0)
+        stepped = jax.lax.cond(
+            done, lambda: (p, cost, lam, it, done, code, jnp.asarray(False)), lambda: step(p, lin, cost, lam, it)
+        )
+        p, cost, lam, it, done, code, stale = stepped
+        return p, lin, cost, c0, lam, it, done, code, stale
+
+    lin0 = jax.tree_util.tree_map(jnp.zeros_like, jax.eval_shape(lin_at, params)[0])
     inf = jnp.asarray(jnp.inf)
     state = (
         params,
-        ne0,
+        lin0,
         inf,
         inf,
         jnp.asarray(1e-3),
         jnp.asarray(0),
-        jnp.asarray(False),
+        jnp.asarray(max_steps) <= 0,
         jnp.asarray(MAX_STEPS),
         jnp.asarray(True),
     )
-    p, _, cost, c0, _, it, _, code, _ = jax.lax.while_loop(lambda s: ~s[6], body, state)
-    return LMResult(p, cost, c0, it, code)
+    p, lin, cost, c0, _, it, _, code, _ = jax.lax.while_loop(lambda s: ~s[6] | s[8], body, state)
+    return LMResult(p, cost, c0, it, code, lin)
 
 
 class Covariance(NamedTuple):
@@ -519,6 +703,23 @@ def schur_inverse(ne: Normal) -> tuple[Array, Array, Array]:
     return jnp.linalg.inv(S), Dinv, Dinv_Bt
 
 
+def covariance_of_linearisation(lin: Linearisation, masks: Masks, sigma: float | Array | None = None) -> Covariance:
+    """``sigma^2 (J^T W J)^-1`` by the Schur complement; ``sigma`` from the residuals when None.
+
+    The residual estimate is ``sum(w r^2) / (n - k)`` over the valid scalar residuals
+    (``n``) and the estimated parameters (``k``).  Frozen parameters get zero variance.
+    """
+    k = jnp.sum(masks.glob * lin.seen_glob) + 6 * jnp.sum(masks.blocks * lin.seen_blocks)
+    dof = (lin.n_valid - k).astype(jnp.int64)
+    s2 = lin.weighted_sq / jnp.maximum(dof, 1).astype(float) if sigma is None else jnp.asarray(sigma, dtype=float) ** 2
+    Sinv, Dinv, Dinv_Bt = schur_inverse(lin.normal)
+    mg = masks.glob * lin.seen_glob
+    cov_g = s2 * Sinv * mg[:, None] * mg[None, :]
+    cov_p = s2 * (Dinv + jnp.einsum("kig,gh,kjh->kij", Dinv_Bt, Sinv, Dinv_Bt))
+    cov_p = cov_p * (masks.blocks * lin.seen_blocks)[:, None, None]
+    return Covariance(cov_g, cov_p, jnp.sqrt(s2), dof)
+
+
 def covariance(
     params: Params,
     pk: Packed,
@@ -528,39 +729,14 @@ def covariance(
     sigma: float | None = None,
     kind_weight: Array | None = None,
 ) -> Covariance:
-    """``sigma^2 (J^T W J)^-1`` by the Schur complement; ``sigma`` from the residuals when None.
+    """:func:`covariance_of_linearisation` at ``params``.
 
-    The residual estimate is ``sum(w r^2) / (n - k)`` over the valid scalar residuals
-    (``n``) and the estimated parameters (``k``).  Frozen parameters get zero variance.
     ``kind_weight`` (4,) as in :func:`solve`: with weights ``(sigma / sigma_kind)^2``
     the covariance holds for kinds of different noise.
     """
-    g, nb = params.n_global, params.n_blocks
-    rows = _rows(params, pk)
-    w, _ = robust_weights(rows, n_observations(pk), loss, jnp.asarray(scale, dtype=float), kind_weight)
-    ne = normal_equations(rows, w, g, nb, masks.glob, masks.blocks)
-    seen_blocks = (
-        jax.ops.segment_sum(
-            (rows.valid & (jnp.sum(jnp.abs(rows.jp), axis=1) > 0)).astype(float), rows.pidx, num_segments=nb + 1
-        )[:nb]
-        > 0
-    )
-    seen_glob = (jnp.zeros(g + 1).at[rows.gidx].add(jnp.abs(rows.jg))[:g] > 0).astype(float)
-    seen_blocks = seen_blocks.astype(float)
-    k = jnp.sum(masks.glob * seen_glob) + 6 * jnp.sum(masks.blocks * seen_blocks)
-    n = jnp.sum(rows.valid.astype(float))
-    dof = (n - k).astype(jnp.int64)
-    s2 = (
-        jnp.sum(w * rows.r**2) / jnp.maximum(dof, 1).astype(float)
-        if sigma is None
-        else jnp.asarray(sigma, dtype=float) ** 2
-    )
-    Sinv, Dinv, Dinv_Bt = schur_inverse(ne)
-    mg = masks.glob * seen_glob
-    cov_g = s2 * Sinv * mg[:, None] * mg[None, :]
-    cov_p = s2 * (Dinv + jnp.einsum("kig,gh,kjh->kij", Dinv_Bt, Sinv, Dinv_Bt))
-    cov_p = cov_p * (masks.blocks * seen_blocks)[:, None, None]
-    return Covariance(cov_g, cov_p, jnp.sqrt(s2), dof)
+    kw = jnp.ones(4) if kind_weight is None else jnp.asarray(kind_weight, dtype=float)
+    lin, _ = linearise(params, pk, masks, loss, jnp.asarray(scale, dtype=float), kw)
+    return covariance_of_linearisation(lin, masks, sigma)
 
 
 def residual_rows(params: Params, pk: Packed) -> Rows:

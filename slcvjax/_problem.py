@@ -1,9 +1,21 @@
-"""Observations packed into flat arrays, and the vectorised residuals of the forward model.
+"""Observations packed into flat arrays, padded to shape buckets, and the vectorised residuals.
 
 A :class:`Packed` problem lists every observation once with the index of the pose it
 depends on, so the residuals of any number of views, boards and lasers are one
-``vmap`` (no Python loop in the traced graph, one compilation per problem size).
+``vmap`` (no Python loop in the traced graph).
+
+**Shape buckets.**  A compiled function is compiled once per shape of its arguments, so
+every array that enters one is padded to a bucket size (:func:`bucket`: a power of two),
+and the padding is masked out exactly: ``Packed.counts`` holds the real number of dots,
+spots, rim pixels and chessboard corners, the padded rows come after the real ones and
+are never counted (no cost, no weight, no Jacobian, no degree of freedom), and padded
+pose blocks have no observation and a zero freeze mask.  Datasets whose sizes fall in the
+same buckets share every compilation.  :class:`Layout` records the real and padded sizes
+of a problem and maps results back (:meth:`Layout.unpad_params`, ...).
 """
+
+import dataclasses
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -32,6 +44,8 @@ class Packed(eqx.Module):
         chess_pose: (C,) index into the direct-view poses of each chessboard corner.
         chess_points: (C, 3) the corner in its board's frame.
         chess_pixels: (C, 2) its observed pixel.
+        counts: (4,) how many dots, spots, rim pixels and corners are real; the rows after
+            them are padding (see the module docstring).
         pose_keys: ``(view index, board name)`` of each board pose (static).
         chess_keys: index of the calibration view of each direct-view pose (static).
     """
@@ -46,6 +60,7 @@ class Packed(eqx.Module):
     chess_pose: Int[Array, " C"]
     chess_points: Float[Array, "C 3"]
     chess_pixels: Float[Array, "C 2"]
+    counts: Int[Array, "4"]
     pose_keys: tuple = eqx.field(static=True)
     chess_keys: tuple = eqx.field(static=True)
 
@@ -56,6 +71,15 @@ class Packed(eqx.Module):
     @property
     def n_chess(self) -> int:
         return len(self.chess_keys)
+
+    def arrays(self) -> "Packed":
+        """The arrays alone, unpadded (no static keys): for a compiled function of this problem's own sizes."""
+        return dataclasses.replace(self, pose_keys=(), chess_keys=())
+
+    def present(self) -> tuple[Bool[Array, " D"], Bool[Array, " S"], Bool[Array, " R"], Bool[Array, " C"]]:
+        """Per kind (dots, spots, rim pixels, corners): which rows are real, not padding."""
+        sizes = (self.dot_pose, self.spot_pose, self.rim_pixels, self.chess_pose)
+        return tuple(jnp.arange(a.shape[0]) < self.counts[k] for k, a in enumerate(sizes))  # type: ignore[return-value]
 
 
 def pack(obs: Observations, use_views: bool = True, use_direct: bool = True) -> Packed:
@@ -108,9 +132,130 @@ def pack(obs: Observations, use_views: bool = True, use_direct: bool = True) -> 
         jnp.asarray(np.array(cp, dtype=np.int64)),
         cat(cpts, 3),
         cat(cpx, 2),
+        jnp.asarray([len(dp), len(sp), sum(len(r) for r in rim), len(cp)], dtype=jnp.int64),
         tuple(keys),
         tuple(ckeys),
     )
+
+
+# ----------------------------------------------------------------------------- shape buckets
+
+MIN_BUCKET = 8
+
+
+def bucket(n: int) -> int:
+    """The padded size of an axis of ``n`` rows: the next power of two (at least ``MIN_BUCKET``; 0 stays 0).
+
+    Powers of two: a dataset pays at most twice the rows of its real size in the cheap
+    vectorised parts (the expensive projections through the mirror run only over the real
+    rows, see ``_lm._rows``), and a size range of 2x shares one compilation.
+    """
+    if n < 0:
+        raise ValueError(f"a size cannot be negative, got {n}")
+    return 0 if n == 0 else max(MIN_BUCKET, 1 << (n - 1).bit_length())
+
+
+def pad_rows(x, size: int, fill=None) -> np.ndarray:
+    """``x`` (host or device array) padded along its first axis to ``size`` rows.
+
+    The padding repeats ``fill`` (one row) or, by default, the first row of ``x`` (zeros
+    if it has none), so that padded rows hold values the model evaluates without trouble.
+    """
+    x = np.asarray(x)
+    n = x.shape[0]
+    if size < n:
+        raise ValueError(f"cannot pad {n} rows to {size}")
+    if size == n:
+        return x
+    row = (x[0] if n else np.zeros(x.shape[1:], x.dtype)) if fill is None else np.asarray(fill, x.dtype)
+    return np.concatenate([x, np.broadcast_to(row, (size - n,) + x.shape[1:])])
+
+
+def map_padded(fn, *args, rows):
+    """``fn(*args, rows)`` with ``rows`` padded to its bucket (:func:`bucket`) and every output
+    cut back to the real rows: a compiled ``vmap`` over rows shared by all sizes of a bucket."""
+    n = np.shape(rows)[0]
+    out = fn(*args, jnp.asarray(pad_rows(rows, bucket(n))))
+    return jax.tree_util.tree_map(lambda x: x[:n], out)
+
+
+class Layout(NamedTuple):
+    """The real and padded sizes of a problem: dots, spots, rim pixels, corners, board poses, direct-view poses."""
+
+    n: tuple[int, int, int, int, int, int]
+    cap: tuple[int, int, int, int, int, int]
+
+    @staticmethod
+    def of(pk: "Packed", n_poses: int | None = None, n_chess: int | None = None) -> "Layout":
+        """The layout of ``pk`` (its real rows) with every size rounded up by :func:`bucket`.
+
+        ``n_poses`` / ``n_chess``: the number of board / direct-view poses (by default
+        those of ``pk``'s keys).
+        """
+        c = np.asarray(pk.counts)
+        n = (
+            int(c[0]),
+            int(c[1]),
+            int(c[2]),
+            int(c[3]),
+            pk.n_poses if n_poses is None else n_poses,
+            pk.n_chess if n_chess is None else n_chess,
+        )
+        return Layout(n, tuple(bucket(k) for k in n))  # type: ignore[arg-type]
+
+    def pad_packed(self, pk: "Packed") -> "Packed":
+        """``pk``'s arrays padded to the layout's sizes, without the static keys (which would
+        make every dataset its own compilation)."""
+        d, s, r, c = self.cap[:4]
+        return Packed(
+            jnp.asarray(pad_rows(pk.dot_pose[: self.n[0]], d)),
+            jnp.asarray(pad_rows(pk.dot_points[: self.n[0]], d)),
+            jnp.asarray(pad_rows(pk.dot_pixels[: self.n[0]], d)),
+            jnp.asarray(pad_rows(pk.spot_pose[: self.n[1]], s)),
+            jnp.asarray(pad_rows(pk.spot_laser[: self.n[1]], s)),
+            jnp.asarray(pad_rows(pk.spot_pixels[: self.n[1]], s)),
+            jnp.asarray(pad_rows(pk.rim_pixels[: self.n[2]], r)),
+            jnp.asarray(pad_rows(pk.chess_pose[: self.n[3]], c)),
+            jnp.asarray(pad_rows(pk.chess_points[: self.n[3]], c)),
+            jnp.asarray(pad_rows(pk.chess_pixels[: self.n[3]], c)),
+            jnp.asarray(self.n[:4], dtype=jnp.int64),
+            (),
+            (),
+        )
+
+    def pad_poses(self, poses: Pose, chess: bool = False) -> Pose:
+        """Stacked board poses (or direct-view poses) padded with copies of the first."""
+        size = self.cap[5 if chess else 4]
+        return Pose(jnp.asarray(pad_rows(poses.R, size, np.eye(3))), jnp.asarray(pad_rows(poses.t, size)))
+
+    def unpad_poses(self, poses: Pose, chess: bool = False) -> Pose:
+        k = self.n[5 if chess else 4]
+        return Pose(poses.R[:k], poses.t[:k])
+
+    def pad_blocks(self, x, fill=0.0) -> np.ndarray:
+        """A per-pose-block array (board poses, then direct-view poses) padded with ``fill``."""
+        x = np.asarray(x)
+        p, c = self.n[4], self.n[5]
+        return np.concatenate(
+            [
+                pad_rows(x[:p], self.cap[4], np.full(x.shape[1:], fill)),
+                pad_rows(x[p : p + c], self.cap[5], np.full(x.shape[1:], fill)),
+            ]
+        )
+
+    def unpad_blocks(self, x) -> np.ndarray:
+        """A per-pose-block array of the padded problem restricted to the real blocks."""
+        x = np.asarray(x)
+        return np.concatenate([x[: self.n[4]], x[self.cap[4] : self.cap[4] + self.n[5]]])
+
+    def unpad_observations(self, x) -> np.ndarray:
+        """A per-observation array of the padded problem (dots, spots, rim, corners) restricted to the real ones."""
+        x = np.asarray(x)
+        parts, start = [], 0
+        for k in range(4):
+            parts.append(x[start : start + self.n[k]])
+            start += self.cap[k]
+        return np.concatenate(parts)
 
 
 def stack_poses(poses: list[Pose]) -> Pose:

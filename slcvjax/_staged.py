@@ -28,7 +28,7 @@ from ._io import Observations, SpotObs, ViewObs
 from ._lasers import Lasers
 from ._mirror import ConeMirror, back_project
 from ._pose import Pose, so3_exp
-from ._problem import Packed, pack, unstack_poses
+from ._problem import Packed, bucket, map_padded, pack, pad_rows, unstack_poses
 
 _CV_LOCK = threading.Lock()
 
@@ -115,7 +115,7 @@ def calibrate_intrinsics(obs: Observations, flags: int = 0) -> tuple[Camera, dic
 
 
 def _rim_residual(y, args):
-    rays, radius, scale = args
+    rays, radius, scale, weight = args
     c, tilt = y[:3], y[3:]
     n0 = c / jnp.linalg.norm(c)
     e1 = jnp.cross(n0, jnp.array([0.0, 1.0, 0.0]))
@@ -125,7 +125,7 @@ def _rim_residual(y, args):
     n = n / jnp.linalg.norm(n)
     lam = jnp.dot(c, n) / (rays @ n)
     x = lam[:, None] * rays
-    return (jnp.linalg.norm(x - c, axis=1) - radius) * scale
+    return (jnp.linalg.norm(x - c, axis=1) - radius) * scale * weight
 
 
 def _small_lm(res, retract, x0, dim: int, steps: int):
@@ -152,13 +152,15 @@ def _small_lm(res, retract, x0, dim: int, steps: int):
     return x, cost
 
 
-def _fit_circle(y0, rays, radius, scale):
-    """The rim circle from one start: 15 LM steps (the preset's fits settle to 6 digits within 10)."""
-    y, cost = _small_lm(lambda y: _rim_residual(y, (rays, radius, scale)), lambda y, d: y + d, y0, 5, 15)
-    return y, jnp.sqrt(cost / rays.shape[0])
+def _fit_circle(y0, rays, weight, radius, scale):
+    """The rim circle from one start: 15 LM steps (the preset's fits settle to 6 digits within 10).
+
+    ``weight`` (R,): 1 for a ray, 0 for padding."""
+    y, cost = _small_lm(lambda y: _rim_residual(y, (rays, radius, scale, weight)), lambda y, d: y + d, y0, 5, 15)
+    return y, jnp.sqrt(cost / jnp.maximum(jnp.sum(weight), 1.0))
 
 
-_fit_circles = jax.jit(jax.vmap(_fit_circle, in_axes=(0, None, None, None)))  # all starts in one call
+_fit_circles = jax.jit(jax.vmap(_fit_circle, in_axes=(0, None, None, None, None)))  # all starts in one call
 
 
 def _circle_pose(y):
@@ -182,7 +184,7 @@ def mirror_from_rim(
     rim = np.asarray(rim_pixels, float).reshape(-1, 2)
     if len(rim) < 5:
         raise CalibrationError(f"views[*].rim: {len(rim)} rim pixels in all (need at least 5 to fit the rim circle)")
-    xy, ok = _undistort_many(camera, jnp.asarray(rim))
+    xy, ok = map_padded(_undistort_many, camera, rows=rim)
     xy = np.asarray(xy)[np.asarray(ok)]
     rays = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
     f = float(camera.fx)
@@ -194,7 +196,13 @@ def mirror_from_rim(
     scale = f / d0
     tilts = np.radians(4.0) * np.array([(0, 0), (1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1), (1, -1), (-1, 1)])
     y0 = np.concatenate([np.broadcast_to(c0, (len(tilts), 3)), tilts], axis=1)
-    ys, rmss = (np.asarray(a) for a in _fit_circles(jnp.asarray(y0), jnp.asarray(rays), radius, scale))
+    size = bucket(len(rays))
+    padded = pad_rows(rays, size, np.array([0.0, 0.0, 1.0]))
+    weight = (np.arange(size) < len(rays)).astype(float)
+    ys, rmss = (
+        np.asarray(a)
+        for a in _fit_circles(jnp.asarray(y0), jnp.asarray(padded), jnp.asarray(weight), float(radius), float(scale))
+    )
     sols = [
         (float(rms), _circle_pose(y))
         for y, rms in zip(ys, rmss, strict=True)
@@ -303,7 +311,7 @@ def board_poses(
     ``start`` (stacked poses): refine from these instead of the DLT (both the start and
     its flipped twin are tried).
     """
-    rays, metric = _rays_with_pixel_metric(camera, mirror, pk.dot_pixels)
+    rays, metric = map_padded(_rays_with_pixel_metric, camera, mirror, rows=pk.dot_pixels)
     org, dirs, ok = np.asarray(rays.point), np.asarray(rays.direction), np.asarray(rays.valid)
     metric = np.asarray(metric)
     idx = np.asarray(pk.dot_pose)
@@ -315,8 +323,8 @@ def board_poses(
         raise CalibrationError(
             f"views[{vi}].boards.{b}: {int(counts[k])} dots back-project onto the mirror (need at least 4 for its pose)"
         )
-    mx = int(np.bincount(idx, minlength=n_p).max())
-    shape = (n_p, mx)
+    mx = bucket(int(np.bincount(idx, minlength=n_p).max()))
+    shape = (bucket(n_p), mx)  # padded boards have no point (mask 0) and are cut off below
     xb, m, d = np.zeros(shape + (3,)), np.zeros(shape + (3,)), np.tile([0.0, 0.0, 1.0], shape + (1,))
     met, mask = np.zeros(shape + (2, 3)), np.zeros(shape)
     slot = np.zeros(n_p, dtype=int)
@@ -326,9 +334,13 @@ def board_poses(
         slot[k] += 1
         xb[k, j], m[k, j], d[k, j], met[k, j], mask[k, j] = pts[i], org[i], dirs[i], metric[i], 1.0
     data = tuple(jnp.asarray(a) for a in (xb, m, d, met, mask))
-    starts = [_dlt_planar(xb, d, m, mask)]
+
+    def padded(R, t):  # padded boards: a pose in front of the camera
+        return pad_rows(R[:n_p], shape[0], np.eye(3)), pad_rows(t[:n_p], shape[0], np.array([0.0, 0.0, 1.0]))
+
+    starts = [padded(*_dlt_planar(xb[:n_p], d[:n_p], m[:n_p], mask[:n_p]))]
     if start is not None:
-        starts.append((np.asarray(start.R), np.asarray(start.t)))
+        starts.append(padded(np.asarray(start.R), np.asarray(start.t)))
     R = t = errs = None
     for R0, t0 in starts:
         R1, t1, e1 = _refine_poses(jnp.asarray(R0), jnp.asarray(t0), *data)
@@ -345,8 +357,8 @@ def board_poses(
             R = jnp.where(better[:, None, None], Rc, R)
             t = jnp.where(better[:, None], tc, t)
             errs = jnp.where(better, ec, errs)
-    poses = unstack_poses(Pose(R, t))
-    errs = np.asarray(errs)
+    poses = unstack_poses(Pose(R, t))[:n_p]
+    errs = np.asarray(errs)[:n_p]
     rms = float(np.sqrt(np.mean(np.square(errs)))) if errs.size else 0.0
     return poses, StageReport("board_poses", rms, "px (first order)", [f"{len(poses)} board poses"])
 
@@ -360,7 +372,7 @@ def fit_lasers(camera: Camera, mirror: ConeMirror, pk: Packed, poses: list[Pose]
     Raises :class:`CalibrationError` naming a laser whose points cannot fix a line
     (fewer than 2 points, or all within 1 mm of each other).
     """
-    rays = _back_many(camera, mirror, pk.spot_pixels)
+    rays = map_padded(_back_many, camera, mirror, rows=pk.spot_pixels)
     org, dirs, ok = np.asarray(rays.point), np.asarray(rays.direction), np.asarray(rays.valid)
     laser_of = np.asarray(pk.spot_laser)
     pose_of = np.asarray(pk.spot_pose)
@@ -469,7 +481,7 @@ def assign_spot_boards(
     index = {k: i for i, k in enumerate(pk.pose_keys)}
     walls = {b for _, b in pk.pose_keys}
     open_px = [s.pixel for v in obs.views for s in v.spots if s.board is None]
-    rays = _back_many(camera, mirror, jnp.asarray(np.reshape(open_px, (-1, 2)), dtype=float))
+    rays = map_padded(_back_many, camera, mirror, rows=np.reshape(np.asarray(open_px, dtype=float), (-1, 2)))
     orgs, dirs, oks = (np.asarray(a) for a in (rays.point, rays.direction, rays.valid))
     views, n_set, k = [], 0, 0
     for vi, v in enumerate(obs.views):

@@ -2,10 +2,8 @@ import os
 from pathlib import Path
 
 # one persistent compilation cache for the test processes (two xdist workers, the notebooks'
-# kernels): a computation compiled in one is loaded by the others
-os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(Path(__file__).parent.parent / ".pytest_cache" / "jax"))
-# every compilation, the many short ones too (by default only those over a second are kept)
-os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+# kernels), apart from the user's: a computation compiled in one is loaded by the others
+os.environ.setdefault("SLCVJAX_CACHE_DIR", str(Path(__file__).parent.parent / ".pytest_cache" / "jax"))
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402

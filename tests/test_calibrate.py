@@ -12,7 +12,6 @@ import pytest
 import slcvjax as sj
 from slcvjax import _lm, cli
 from slcvjax._calibrate import (
-    _arrays,
     _carried,
     _covariance,
     _misfit_boards,
@@ -88,7 +87,7 @@ def test_carried_pose_is_the_truth_when_the_boards_stand_still(exact):
     t[k] += np.array([300.0, -200.0, 100.0])
     wrong = _lm.Params(params.rig, sj.Pose(jnp.asarray(R), jnp.asarray(t)), params.chess)
     # the far-off pose is the one board that fits badly (a mean cost per dot above scale^2)
-    trial = types.SimpleNamespace(pk=pk, arr=_arrays(pk), scale=1.0)
+    trial = types.SimpleNamespace(pk=pk, scale=1.0)
     assert _misfit_boards(types.SimpleNamespace(params=params, **vars(trial)), "huber") == 0
     assert _misfit_boards(types.SimpleNamespace(params=wrong, **vars(trial)), "huber") == 1
     carried, hold = _carried(wrong, pk, masks)
@@ -125,7 +124,7 @@ def test_joint_lowers_the_cost_converges_and_estimates_sigma(scene):
 
 def test_schur_step_equals_dense_step(scene):
     obs, truth = simulate(scene, noise=0.5, seed=1)
-    pk = _arrays(pack(obs))
+    pk = pack(obs).arrays()
     params = _truth_params(truth, pack(obs))
     masks = _lm.make_masks(params, {"chess_poses"})
     n_obs, g, nb = _lm.n_observations(pk), params.n_global, params.n_blocks
@@ -155,7 +154,7 @@ def test_lm_gradient_is_the_gradient_of_its_cost(scene):
     minimum get rejected.
     """
     obs, truth = simulate(scene, noise=0.5, seed=2)
-    pk = _arrays(pack(obs))
+    pk = pack(obs).arrays()
     p_true = _truth_params(truth, pack(obs))
     rng = np.random.default_rng(0)
     dg0, dp0 = rng.normal(0, 1e-3, p_true.n_global), rng.normal(0, 1e-3, (p_true.n_blocks, 6))
@@ -198,11 +197,11 @@ def test_covariance_matches_a_small_monte_carlo(scene):
     p_true = _truth_params(truth, pk)
     masks = _lm.make_masks(p_true)
     # Huber at 1e9 px is plain least squares and shares the calibration's compiled solver
-    cov = np.asarray(_covariance(p_true, _arrays(pk), masks, "huber", 1e9, sigma=sigma).glob)
+    cov = np.asarray(_covariance(p_true, pk.arrays(), masks, "huber", 1e9, sigma=sigma).glob)
     errs = []
     for seed in range(1, 41):
         o, _ = simulate(scene, noise=sigma, seed=seed)
-        res = _solve(p_true, _arrays(pack(o)), masks, loss="huber", scale=1e9, max_steps=200)
+        res = _solve(p_true, pack(o).arrays(), masks, loss="huber", scale=1e9, max_steps=200)
         est = res.params.rig
         e = np.concatenate(
             [

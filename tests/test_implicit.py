@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from slcvjax import _implicit
-from slcvjax._calibrate import _arrays, calibrate
+from slcvjax._calibrate import calibrate
 from slcvjax._camera import undistort
 from slcvjax._mirror import solve_mirror_point
 from slcvjax._newton import exact_second_order
@@ -26,7 +26,7 @@ def _flat(params):
 def solved():
     obs, _ = simulate(make_scene("paper", **SCENE), noise=0.5, seed=3)
     res = calibrate(obs)
-    arr = _arrays(res.packed)
+    arr = res.packed.arrays()
     p0, steps = _implicit.stationary_point(res.params, arr, res.masks, res.loss, res.scale)
     return res, arr, p0, steps
 

@@ -3,7 +3,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from slcvjax._problem import dot_residuals, pack, spot_residuals, stack_poses
+from slcvjax._problem import Layout, bucket, dot_residuals, map_padded, pack, spot_residuals, stack_poses
 from slcvjax._simulate import make_scene, simulate
 
 
@@ -37,3 +37,76 @@ def test_residuals_vanish_at_the_truth_and_grow_away_from_it(packed_truth):
     hit = np.asarray(packed.spot_laser) == 0
     assert float(jnp.abs(rs2[hit]).min()) > 0.01
     np.testing.assert_allclose(np.asarray(rs2[~hit]), 0.0, atol=1e-9)
+
+
+def test_bucket_ladder():
+    assert [bucket(n) for n in (0, 1, 8, 9, 100, 128, 129)] == [0, 8, 8, 16, 128, 128, 256]
+    with pytest.raises(ValueError):
+        bucket(-1)
+
+
+def test_map_padded_equals_the_unpadded_map():
+    f = jax.jit(jax.vmap(lambda a, x: (a * jnp.sin(x), jnp.sum(x)), in_axes=(None, 0)))
+    rows = np.random.default_rng(0).normal(size=(13, 2))
+    out = map_padded(f, 2.0, rows=rows)
+    ref = f(2.0, jnp.asarray(rows))
+    assert out[0].shape == (13, 2) and out[1].shape == (13,)
+    np.testing.assert_array_equal(np.asarray(out[0]), np.asarray(ref[0]))
+
+
+def _rel(a, b):
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    return float(np.max(np.abs(a - b)) / max(np.max(np.abs(b)), 1e-300))
+
+
+def test_padded_problem_solves_as_the_unpadded_one():
+    """Padding in every array (dots, spots, rim, corners, board and direct-view poses) is
+    masked out exactly: the same steps, cost, parameters, covariance and residual table."""
+    from slcvjax import _lm
+    from slcvjax._calibrate import _covariance_of_linearisation, _solve
+
+    obs, truth = simulate(make_scene("paper", n_lasers=3, n_views=3), noise=0.5, seed=3)
+    pk = pack(obs)
+    poses = stack_poses([truth.board_poses[v][b] for v, b in pk.pose_keys])
+    chess = stack_poses([truth.calibration_view_poses[c] for c in pk.chess_keys])
+    p_true = _lm.Params(truth.rig, poses, chess)
+    rng = np.random.default_rng(0)
+    start = p_true.retract(
+        jnp.asarray(rng.normal(0, 1e-3, p_true.n_global)), jnp.asarray(rng.normal(0, 1e-3, (p_true.n_blocks, 6)))
+    )
+    masks = _lm.make_masks(start, {"chess_poses"})
+    exact = Layout.of(pk)._replace(cap=Layout.of(pk).n)  # no padding at all
+    padded = Layout.of(pk)._replace(cap=tuple(n + 5 for n in Layout.of(pk).n))
+    assert all(c > n for c, n in zip(padded.cap, padded.n, strict=True))
+    out = []
+    for lay in (exact, padded):
+        p, a, m = _lm.pad_params(lay, start), lay.pad_packed(pk), _lm.pad_masks(lay, masks)
+        res = _solve(p, a, m, loss="huber", scale=1.5, max_steps=100, rtol=1e-10)
+        cov = _covariance_of_linearisation(res.linearisation, m, None)
+        out.append((lay, res, cov))
+    (le, re, ce), (lp, rp, cp) = out
+    assert int(re.steps) == int(rp.steps) and int(re.result) == int(rp.result)
+    assert float(rp.cost) == pytest.approx(float(re.cost), rel=1e-9)
+    pe, pp = _lm.unpad_params(le, re.params), _lm.unpad_params(lp, rp.params)
+    for a, b in zip(jax.tree_util.tree_leaves(pp), jax.tree_util.tree_leaves(pe), strict=True):
+        assert _rel(a, b) < 1e-9
+    assert _rel(cp.glob, ce.glob) < 1e-9 and float(cp.sigma) == pytest.approx(float(ce.sigma), rel=1e-9)
+    assert int(cp.dof) == int(ce.dof)
+    assert _rel(lp.unpad_blocks(cp.blocks), le.unpad_blocks(ce.blocks)) < 1e-9
+    tp, te = rp.linearisation.table, re.linearisation.table
+    for a, b in zip(tp[:4], te[:4], strict=True):  # sq, kind, valid, present
+        a, b = lp.unpad_observations(a), le.unpad_observations(b)
+        assert a.shape == b.shape and _rel(a, b) < 1e-9
+
+    def real_block(lay, block):  # a padded problem's pose block index as the real problem's
+        b = lay.unpad_observations(block)
+        chess = b >= lay.cap[4]
+        none = b >= lay.cap[4] + lay.cap[5]
+        return np.where(none, -1, np.where(chess, b - lay.cap[4] + lay.n[4], b))
+
+    np.testing.assert_array_equal(real_block(lp, tp.block), real_block(le, te.block))
+    # the padding itself: no weight, no cost, not valid
+    t = rp.linearisation.table
+    pad = ~np.asarray(t.present)
+    assert pad.sum() == sum(c - n for c, n in zip(lp.cap[:4], lp.n[:4], strict=True))
+    assert not np.any(np.asarray(t.valid)[pad]) and np.all(np.asarray(t.sq)[pad] == 0.0)

@@ -1,0 +1,189 @@
+"""Compilation benchmark: what a user waits for with datasets of their own sizes.
+
+Run: ``python benchmarks/bench_compile.py [--lasers 8] [--views 9,10,11,12,13,14,15,12,11] [--out FILE]``.
+
+Nine scenes of one rig (not the preset's: ``--lasers`` lasers, sensor poses drawn from
+their own seeds, so the numbers of dots, spots, rim pixels and board poses differ from
+scene to scene) are calibrated from their simulated observations (0.5 px):
+
+(a) **cold**: a fresh process with an empty compilation cache calibrates the first scene:
+    wall time from the start of the process (imports included), with the seconds spent
+    compiling (XLA's backend compile, JAX's tracing and lowering) apart;
+(b) **one process, every scene**: the same process calibrates the other scenes, each its
+    own size; the marginal seconds per scene after the first, against the baseline of the
+    same process calibrating the first scene again (nothing left to compile), as a ratio;
+(c) **warm cache**: a new process with the cache (a) and (b) left calibrates a scene of
+    sizes neither saw: wall time from the start of the process, compile seconds apart.
+
+Each part runs in its own ``python`` process (``--part``), with ``SLCVJAX_CACHE_DIR`` set to
+a fresh temporary folder for the whole benchmark.  Results are printed and written as
+JSON with the machine's description.
+"""
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+T_START = time.perf_counter()
+
+
+def scene(n_lasers: int, n_views: int, seed: int):
+    """The rig with ``n_lasers`` lasers at ``n_views`` sensor poses drawn from ``seed`` within the preset's range."""
+    import numpy as np
+
+    from slcvjax._simulate import PAPER_ROTATION_DEG, PAPER_TRANSLATION_MM, box_scene, paper_rig
+
+    rng = np.random.default_rng(seed)
+    views = np.zeros((n_views, 6))
+    views[1:, :3] = np.radians(rng.uniform(-1, 1, (n_views - 1, 3)) * np.asarray(PAPER_ROTATION_DEG))
+    views[1:, 3:] = rng.uniform(-1, 1, (n_views - 1, 3)) * np.asarray(PAPER_TRANSLATION_MM)
+    return box_scene(paper_rig(n_lasers), views)
+
+
+def _compile_seconds():
+    import jax
+
+    totals = {"backend_compile": 0.0, "trace": 0.0, "lower": 0.0, "compilations": 0}
+    names = {
+        "/jax/core/compile/backend_compile_duration": "backend_compile",
+        "/jax/core/compile/jaxpr_trace_duration": "trace",
+        "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower",
+    }
+
+    def listen(event, duration, **kw):
+        if event in names:
+            totals[names[event]] += duration
+            totals["compilations"] += event.endswith("backend_compile_duration")
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    return totals
+
+
+def part(name: str, n_lasers: int, views: list[int]) -> dict:
+    """One process's part of the benchmark (see the module docstring)."""
+    totals = _compile_seconds()
+    import slcvjax as sj
+    from slcvjax._problem import Layout, pack
+    from slcvjax._simulate import simulate
+
+    t_import = time.perf_counter() - T_START
+
+    def one(n_v: int, seed: int) -> dict:
+        obs, _ = simulate(scene(n_lasers, n_v, seed), noise=0.5, seed=seed)
+        before = dict(totals)
+        t0 = time.perf_counter()
+        res = sj.calibrate(obs)
+        wall = time.perf_counter() - t0
+        lay = Layout.of(pack(obs))
+        return {
+            "views": n_v,
+            "seed": seed,
+            "sizes": dict(zip(["dots", "spots", "rim", "corners", "board_poses", "direct_poses"], lay.n, strict=True)),
+            "buckets": list(lay.cap),
+            "seconds": wall,
+            "compile_seconds": {k: totals[k] - before[k] for k in totals},
+            "converged": res.passes[-1].result.startswith("converged"),
+        }
+
+    out: dict = {"import_seconds": t_import}
+    if name == "cold":
+        first = one(views[0], 100)
+        out["first"] = first
+        out["first_wall_from_process_start"] = time.perf_counter() - T_START
+        out["others"] = [one(v, 101 + i) for i, v in enumerate(views[1:])]
+        out["first_again"] = one(views[0], 100)
+    else:
+        first = one(views[0], 999)
+        out["first"] = first
+        out["first_wall_from_process_start"] = time.perf_counter() - T_START
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--lasers", type=int, default=8)
+    ap.add_argument("--views", default="12,9,10,11,13,14,15,12,11", help="views of each scene (first: the cold one)")
+    ap.add_argument("--unseen-views", type=int, default=14, help="views of the warm-cache scene (c)")
+    ap.add_argument("--part", choices=["cold", "warm"], help=argparse.SUPPRESS)
+    ap.add_argument("--out", type=Path)
+    args = ap.parse_args()
+    views = [int(v) for v in args.views.split(",")]
+    if args.part:
+        print(json.dumps(part(args.part, args.lasers, views)))
+        return
+    with tempfile.TemporaryDirectory(prefix="slcvjax-bench-cache-") as cache:
+        env = dict(os.environ, SLCVJAX_CACHE_DIR=cache)
+        runs = {}
+        for name, v in (("cold", args.views), ("warm", str(args.unseen_views))):
+            cmd = [sys.executable, __file__, "--part", name, "--lasers", str(args.lasers), "--views", v]
+            t0 = time.perf_counter()
+            proc = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True)
+            runs[name] = json.loads(proc.stdout.strip().splitlines()[-1])
+            runs[name]["process_wall_seconds"] = time.perf_counter() - t0
+    cold, warm = runs["cold"], runs["warm"]
+    others = cold["others"]
+    marginal = sum(o["seconds"] for o in others) / len(others)
+    baseline = cold["first_again"]["seconds"]
+    from bench_forward import machine
+
+    result = {
+        "benchmark": "compile",
+        "machine": machine(),
+        "lasers": args.lasers,
+        "a_cold": {
+            "wall_seconds_from_process_start": cold["first_wall_from_process_start"],
+            "import_seconds": cold["import_seconds"],
+            "calibration_seconds": cold["first"]["seconds"],
+            "compile_seconds": cold["first"]["compile_seconds"],
+            "sizes": cold["first"]["sizes"],
+        },
+        "b_one_process": {
+            "marginal_seconds_per_scene": marginal,
+            "baseline_repeat_seconds": baseline,
+            "ratio_to_baseline": marginal / baseline,
+            "scenes_that_compiled": sum(o["compile_seconds"]["compilations"] > 0 for o in others),
+            "scenes": others,
+        },
+        "c_warm_cache": {
+            "wall_seconds_from_process_start": warm["first_wall_from_process_start"],
+            "import_seconds": warm["import_seconds"],
+            "calibration_seconds": warm["first"]["seconds"],
+            "compile_seconds": warm["first"]["compile_seconds"],
+            "sizes": warm["first"]["sizes"],
+        },
+        "all_converged": all(o["converged"] for o in [cold["first"], warm["first"], *others]),
+    }
+    a, b, c = result["a_cold"], result["b_one_process"], result["c_warm_cache"]
+    print(
+        f"(a) cold: {a['wall_seconds_from_process_start']:.1f} s from process start "
+        f"(imports {a['import_seconds']:.1f} s, XLA compile {a['compile_seconds']['backend_compile']:.1f} s, "
+        f"tracing {a['compile_seconds']['trace']:.1f} s, lowering {a['compile_seconds']['lower']:.1f} s)"
+    )
+    print(
+        f"(b) {len(others)} more scenes: {marginal:.2f} s per scene, {b['ratio_to_baseline']:.2f}x the repeat of "
+        f"the first ({baseline:.2f} s); {b['scenes_that_compiled']} of them compiled something"
+    )
+    for o in others:
+        print(
+            f"    {o['views']:2d} views {o['sizes']}: {o['seconds']:.2f} s "
+            f"(compile {o['compile_seconds']['backend_compile']:.2f} s, "
+            f"{o['compile_seconds']['compilations']} programs)"
+        )
+    print(
+        f"(c) warm cache, unseen sizes {c['sizes']}: {c['wall_seconds_from_process_start']:.1f} s from process start "
+        f"(imports {c['import_seconds']:.1f} s, XLA compile {c['compile_seconds']['backend_compile']:.1f} s, "
+        f"tracing {c['compile_seconds']['trace']:.1f} s)"
+    )
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(result, indent=1))
+        print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
