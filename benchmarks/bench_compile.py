@@ -4,7 +4,9 @@ Run: ``python benchmarks/bench_compile.py [--lasers 8] [--views 9,10,11,12,13,14
 
 Nine scenes of one rig (not the preset's: ``--lasers`` lasers, sensor poses drawn from
 their own seeds, so the numbers of dots, spots, rim pixels and board poses differ from
-scene to scene) are calibrated from their simulated observations (0.5 px):
+scene to scene) are simulated (0.5 px) and written as observation files; each part reads
+them and calibrates (``read_observations``, then ``calibrate``), as ``slcvjax calibrate``
+does:
 
 (a) **cold**: a fresh process with an empty compilation cache calibrates the first scene:
     wall time from the start of the process (imports included), with the seconds spent
@@ -64,25 +66,24 @@ def _compile_seconds():
     return totals
 
 
-def part(name: str, n_lasers: int, views: list[int]) -> dict:
+def part(name: str, files: list[Path]) -> dict:
     """One process's part of the benchmark (see the module docstring)."""
     totals = _compile_seconds()
     import slcvjax as sj
     from slcvjax._problem import Layout, pack
-    from slcvjax._simulate import simulate
 
     t_import = time.perf_counter() - T_START
 
-    def one(n_v: int, seed: int) -> dict:
-        obs, _ = simulate(scene(n_lasers, n_v, seed), noise=0.5, seed=seed)
+    def one(path: Path) -> dict:
         before = dict(totals)
+        obs = sj.read_observations(path)
         t0 = time.perf_counter()
         res = sj.calibrate(obs)
         wall = time.perf_counter() - t0
         lay = Layout.of(pack(obs))
         return {
-            "views": n_v,
-            "seed": seed,
+            "file": path.name,
+            "views": len(obs.views),
             "sizes": dict(zip(["dots", "spots", "rim", "corners", "board_poses", "direct_poses"], lay.n, strict=True)),
             "buckets": list(lay.cap),
             "seconds": wall,
@@ -91,16 +92,11 @@ def part(name: str, n_lasers: int, views: list[int]) -> dict:
         }
 
     out: dict = {"import_seconds": t_import}
+    out["first"] = one(files[0])
+    out["first_wall_from_process_start"] = time.perf_counter() - T_START
     if name == "cold":
-        first = one(views[0], 100)
-        out["first"] = first
-        out["first_wall_from_process_start"] = time.perf_counter() - T_START
-        out["others"] = [one(v, 101 + i) for i, v in enumerate(views[1:])]
-        out["first_again"] = one(views[0], 100)
-    else:
-        first = one(views[0], 999)
-        out["first"] = first
-        out["first_wall_from_process_start"] = time.perf_counter() - T_START
+        out["others"] = [one(f) for f in files[1:]]
+        out["first_again"] = one(files[0])
     return out
 
 
@@ -110,17 +106,26 @@ def main() -> None:
     ap.add_argument("--views", default="12,9,10,11,13,14,15,12,11", help="views of each scene (first: the cold one)")
     ap.add_argument("--unseen-views", type=int, default=14, help="views of the warm-cache scene (c)")
     ap.add_argument("--part", choices=["cold", "warm"], help=argparse.SUPPRESS)
+    ap.add_argument("--files", nargs="*", type=Path, help=argparse.SUPPRESS)
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
-    views = [int(v) for v in args.views.split(",")]
     if args.part:
-        print(json.dumps(part(args.part, args.lasers, views)))
+        print(json.dumps(part(args.part, args.files)))
         return
-    with tempfile.TemporaryDirectory(prefix="slcvjax-bench-cache-") as cache:
-        env = dict(os.environ, SLCVJAX_CACHE_DIR=cache)
+    views = [int(v) for v in args.views.split(",")]
+    with tempfile.TemporaryDirectory(prefix="slcvjax-bench-") as tmp:
+        from slcvjax._io import write_observations
+        from slcvjax._simulate import simulate
+
+        files = []
+        for i, n_v in enumerate(views + [args.unseen_views]):
+            obs, _ = simulate(scene(args.lasers, n_v, 100 + i), noise=0.5, seed=100 + i)
+            files.append(Path(tmp) / f"scene{i:02d}_{n_v}views.json")
+            write_observations(files[-1], obs)
+        env = dict(os.environ, SLCVJAX_CACHE_DIR=str(Path(tmp) / "cache"))
         runs = {}
-        for name, v in (("cold", args.views), ("warm", str(args.unseen_views))):
-            cmd = [sys.executable, __file__, "--part", name, "--lasers", str(args.lasers), "--views", v]
+        for name, fs in (("cold", files[:-1]), ("warm", files[-1:])):
+            cmd = [sys.executable, __file__, "--part", name, "--files", *map(str, fs)]
             t0 = time.perf_counter()
             proc = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True)
             runs[name] = json.loads(proc.stdout.strip().splitlines()[-1])

@@ -43,12 +43,13 @@ from ._lm import (
     solve,
     unpad_params,
 )
+from ._persist import PersistentJit
 from ._pose import Pose
 from ._problem import Layout, Packed, pack, stack_poses, unstack_poses
 from ._rig import Rig, project_board_points, project_rim, project_spots
 from ._staged import CalibrationError, Staged, _flipped, board_poses, fit_lasers, staged
 
-_solve_jit = jax.jit(solve)
+_solve_jit = PersistentJit(solve, "solve")
 
 
 def _solve(params: Params, arr: Packed, masks: Masks, loss: str, scale, max_steps: int, rtol=1e-10, kind_weight=None):
@@ -58,11 +59,11 @@ def _solve(params: Params, arr: Packed, masks: Masks, loss: str, scale, max_step
         params,
         arr,
         masks,
-        loss=jnp.asarray(loss_index(loss)),
-        scale=jnp.asarray(scale, dtype=float),
-        max_steps=jnp.asarray(max_steps),
-        rtol=jnp.asarray(rtol, dtype=float),
-        kind_weight=_kind_weight(kind_weight),
+        jnp.asarray(loss_index(loss)),
+        jnp.asarray(scale, dtype=float),
+        jnp.asarray(max_steps),
+        jnp.asarray(rtol, dtype=float),
+        _kind_weight(kind_weight),
     )
 
 
@@ -114,7 +115,7 @@ def covariance_of(params: Params, pk: Packed, masks: Masks, loss: str, scale, si
     cov = _covariance_of_linearisation(
         lin, pad_masks(layout, masks), None if sigma is None else jnp.asarray(sigma, dtype=float)
     )
-    return cov._replace(blocks=jnp.asarray(layout.unpad_blocks(cov.blocks)))
+    return cov._replace(blocks=layout.unpad_blocks(cov.blocks))
 
 
 def kind_sigmas(params: Params, pk: Packed, min_count: int = 10) -> np.ndarray:
@@ -291,7 +292,7 @@ def _solve_loop(jobs: list[tuple], loss: str, max_steps: int, size: int | None =
 @jax.jit
 def _solve_batched(params, arr, masks, scale, kind_weight, rtol, loss, max_steps):
     def one(p, a, m, sc, kw, rt):
-        return solve(p, a, m, loss=loss, scale=sc, max_steps=max_steps, rtol=rt, kind_weight=kw)
+        return solve(p, a, m, loss=loss, scale=sc, max_steps=max_steps, rtol=rt, kind_weight=kw, real_only=False)
 
     return jax.vmap(one)(params, arr, masks, scale, kind_weight, rtol)
 
@@ -512,7 +513,7 @@ def _twin(params: Params, arr: Packed, masks: Masks) -> tuple[Params, Masks]:
         if np.any(dp == k):
             xb[k, 0] = pts[dp == k].mean(axis=0)
     R2, t2 = _flipped(R, t, xb, np.ones((n_p, 1)))
-    twin = Params(params.rig, Pose(jnp.asarray(R2), jnp.asarray(t2)), params.chess)
+    twin = Params(params.rig, Pose(R2, t2), params.chess)
     return twin, _hold_rig(params, masks)
 
 
@@ -547,7 +548,7 @@ def _carried(params: Params, pk: Packed, masks: Masks) -> tuple[Params, Masks]:
             r_ab = R[ka0].T @ R[kb0]
             t_ab = R[ka0].T @ (t[kb0] - t[ka0])
             R2[k], t2[k] = R[ka] @ r_ab, R[ka] @ t_ab + t[ka]
-    carried = Params(params.rig, Pose(jnp.asarray(R2), jnp.asarray(t2)), params.chess)
+    carried = Params(params.rig, Pose(R2, t2), params.chess)
     return carried, _hold_rig(params, masks)
 
 
@@ -564,7 +565,10 @@ def _misfit_boards(tr: "_Trial", loss: str) -> int:
 def _hold_rig(params: Params, masks: Masks) -> Masks:
     """Masks that refine the board poses alone."""
     n_p = params.poses.t.shape[0]
-    return Masks(jnp.zeros_like(masks.glob), jnp.concatenate([masks.blocks[:n_p], jnp.zeros(params.chess.t.shape[0])]))
+    blocks = np.asarray(masks.blocks)
+    return Masks(
+        np.zeros_like(np.asarray(masks.glob)), np.concatenate([blocks[:n_p], np.zeros(params.chess.t.shape[0])])
+    )
 
 
 def _candidates(params: Params, pk: Packed, masks: Masks) -> list[tuple[Params, Masks]]:
@@ -585,9 +589,9 @@ def _keep_better(
         better &= _turned(other.poses, params.poses)
     if not better.any():
         return params, 0
-    b = jnp.asarray(better)
     poses = Pose(
-        jnp.where(b[:, None, None], other.poses.R, params.poses.R), jnp.where(b[:, None], other.poses.t, params.poses.t)
+        np.where(better[:, None, None], np.asarray(other.poses.R), np.asarray(params.poses.R)),
+        np.where(better[:, None], np.asarray(other.poses.t), np.asarray(params.poses.t)),
     )
     return Params(params.rig, poses, params.chess), int(np.sum(better & _turned(other.poses, params.poses)))
 

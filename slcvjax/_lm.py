@@ -38,6 +38,7 @@ from typing import NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ._camera import Camera, in_image, pixel_to_ray, project
@@ -519,21 +520,18 @@ def make_masks(params: Params, freeze: frozenset | set | tuple = ()) -> Masks:
             f"unknown parameter block(s) to freeze: {', '.join(sorted(bad))} (known: {', '.join(sorted(known))})"
         )
     n_l = params.rig.lasers.n
-    glob = jnp.concatenate(
+    glob = np.concatenate(
         [
-            jnp.full(N_CAM, 0.0 if "camera" in freeze else 1.0, dtype=float),
-            jnp.full(N_MIR, 0.0 if "mirror" in freeze else 1.0, dtype=float),
-            jnp.full(N_LAS * n_l, 0.0 if "lasers" in freeze else 1.0, dtype=float),
+            np.full(N_CAM, 0.0 if "camera" in freeze else 1.0),
+            np.full(N_MIR, 0.0 if "mirror" in freeze else 1.0),
+            np.full(N_LAS * n_l, 0.0 if "lasers" in freeze else 1.0),
         ]
     )
     p, c = params.poses.t.shape[0], params.chess.t.shape[0]
-    blocks = jnp.concatenate(
-        [
-            jnp.full(p, 0.0 if "poses" in freeze else 1.0, dtype=float),
-            jnp.full(c, 0.0 if "chess_poses" in freeze else 1.0, dtype=float),
-        ]
+    blocks = np.concatenate(
+        [np.full(p, 0.0 if "poses" in freeze else 1.0), np.full(c, 0.0 if "chess_poses" in freeze else 1.0)]
     )
-    return Masks(glob, blocks)  # strongly typed, so every pass shares one compilation
+    return Masks(glob, blocks)  # float64 host arrays: strongly typed, so every pass shares one compilation
 
 
 def pad_params(layout: Layout, params: Params) -> Params:
@@ -571,16 +569,16 @@ class LMResult(NamedTuple):
     linearisation: Linearisation  # at ``params`` (with the rim normalisation held at the start)
 
 
-def _cost(params, pk, loss, scale, kind_weight, rim_norm=None):
-    rows = _rows(params, pk, with_jac=False, rim_norm=rim_norm)
+def _cost(params, pk, loss, scale, kind_weight, rim_norm=None, real_only=True):
+    rows = _rows(params, pk, with_jac=False, rim_norm=rim_norm, real_only=real_only)
     _, c = robust_weights(rows, n_observations(pk), loss, scale, kind_weight)
     return c
 
 
-def linearise(params: Params, pk: Packed, masks: Masks, loss: str, scale, kind_weight, rim_norm=None):
-    """:class:`Linearisation` at ``params`` and the robust cost there."""
+def linearise(params: Params, pk: Packed, masks: Masks, loss: str, scale, kind_weight, rim_norm=None, real_only=True):
+    """:class:`Linearisation` at ``params`` and the robust cost there (``real_only``: see :func:`_rows`)."""
     g, nb, n_obs = params.n_global, params.n_blocks, n_observations(pk)
-    rows = _rows(params, pk, rim_norm=rim_norm)
+    rows = _rows(params, pk, rim_norm=rim_norm, real_only=real_only)
     table = observation_table(rows, n_obs)
     w_obs, rho = robust_observations(table, loss, scale, kind_weight)
     w = w_obs[rows.obs]
@@ -612,6 +610,7 @@ def solve(
     max_steps: int | Array = 100,
     rtol: float | Array = 1e-10,
     kind_weight: Array | None = None,
+    real_only: bool = True,
 ) -> LMResult:
     """Levenberg-Marquardt from ``params``; returns the solution and a result code.
 
@@ -622,7 +621,9 @@ def solve(
     covariance, the bound and the reports use that, so that one compiled solve serves
     them all (``max_steps`` and ``rtol`` are values, not compile-time constants).
     ``kind_weight`` (4,) weighs dots, spots, rim and chess corners (0 drops a kind;
-    freeze what it alone determines).
+    freeze what it alone determines).  ``real_only=False`` projects the padding too, in one
+    ``vmap`` instead of a loop over the real rows (for trials in lockstep under ``vmap``,
+    where a loop's trip count would differ from trial to trial).
     """
     loss = loss_index(loss)
     scale = jnp.asarray(scale, dtype=float)
@@ -634,12 +635,12 @@ def solve(
     rim_norm = rim_norms(params.rig, pk)
 
     def lin_at(p):
-        return linearise(p, pk, masks, loss, scale, kw, rim_norm)
+        return linearise(p, pk, masks, loss, scale, kw, rim_norm, real_only)
 
     def step(p, lin, cost, lam, it):
         dg, dp = schur_step(lin.normal, lam)
         cand = p.retract(dg, dp)
-        c_new = _cost(cand, pk, loss, scale, kw, rim_norm)
+        c_new = _cost(cand, pk, loss, scale, kw, rim_norm, real_only)
         ok = jnp.isfinite(c_new) & (c_new < cost)
         small = (cost - c_new) <= rtol * cost
         tiny = jnp.maximum(jnp.max(jnp.abs(dg)), jnp.max(jnp.abs(dp), initial=0.0)) < 1e-12

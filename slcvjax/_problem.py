@@ -119,20 +119,22 @@ def pack(obs: Observations, use_views: bool = True, use_direct: bool = True) -> 
         cpx.append(cv.pixels[cv.seen])
 
     def cat(parts, width):
-        return jnp.asarray(np.concatenate(parts) if parts else np.zeros((0, width)))
+        return np.concatenate(parts).astype(float) if parts else np.zeros((0, width))
 
+    # host (numpy) arrays: a device array of each dataset's own size would compile its own
+    # small copies and slices; the compiled functions take them padded (Layout.pad_packed)
     return Packed(
-        jnp.asarray(np.array(dp, dtype=np.int64)),
+        np.array(dp, dtype=np.int64),
         cat(dpts, 3),
         cat(dpx, 2),
-        jnp.asarray(np.array(sp, dtype=np.int64)),
-        jnp.asarray(np.array(sl, dtype=np.int64)),
-        jnp.asarray(np.array(spx, dtype=float).reshape(-1, 2)),
+        np.array(sp, dtype=np.int64),
+        np.array(sl, dtype=np.int64),
+        np.array(spx, dtype=float).reshape(-1, 2),
         cat(rim, 2),
-        jnp.asarray(np.array(cp, dtype=np.int64)),
+        np.array(cp, dtype=np.int64),
         cat(cpts, 3),
         cat(cpx, 2),
-        jnp.asarray([len(dp), len(sp), sum(len(r) for r in rim), len(cp)], dtype=jnp.int64),
+        np.array([len(dp), len(sp), sum(len(r) for r in rim), len(cp)], dtype=np.int64),
         tuple(keys),
         tuple(ckeys),
     )
@@ -176,7 +178,7 @@ def map_padded(fn, *args, rows):
     cut back to the real rows: a compiled ``vmap`` over rows shared by all sizes of a bucket."""
     n = np.shape(rows)[0]
     out = fn(*args, jnp.asarray(pad_rows(rows, bucket(n))))
-    return jax.tree_util.tree_map(lambda x: x[:n], out)
+    return jax.tree_util.tree_map(lambda x: np.asarray(x)[:n], out)
 
 
 class Layout(NamedTuple):
@@ -229,8 +231,9 @@ class Layout(NamedTuple):
         return Pose(jnp.asarray(pad_rows(poses.R, size, np.eye(3))), jnp.asarray(pad_rows(poses.t, size)))
 
     def unpad_poses(self, poses: Pose, chess: bool = False) -> Pose:
+        """The real poses of padded ones (host arrays)."""
         k = self.n[5 if chess else 4]
-        return Pose(poses.R[:k], poses.t[:k])
+        return Pose(np.asarray(poses.R)[:k], np.asarray(poses.t)[:k])
 
     def pad_blocks(self, x, fill=0.0) -> np.ndarray:
         """A per-pose-block array (board poses, then direct-view poses) padded with ``fill``."""
@@ -261,11 +264,10 @@ class Layout(NamedTuple):
 def stack_poses(poses: list[Pose]) -> Pose:
     """A list of poses as one :class:`Pose` with leading axis (P, ...), stacked on the host.
 
-    Host code only (not under ``jit``): one copy to the device instead of one operation per pose.
+    Host code only (not under ``jit``): host arrays, copied to the device (padded) by the
+    compiled functions that take them.
     """
-    return Pose(
-        jnp.asarray(np.stack([np.asarray(p.R) for p in poses])), jnp.asarray(np.stack([np.asarray(p.t) for p in poses]))
-    )
+    return Pose(np.stack([np.asarray(p.R) for p in poses]), np.stack([np.asarray(p.t) for p in poses]))
 
 
 def unstack_poses(poses: Pose) -> list[Pose]:

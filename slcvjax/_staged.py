@@ -27,6 +27,7 @@ from ._camera import Camera, undistort
 from ._io import Observations, SpotObs, ViewObs
 from ._lasers import Lasers
 from ._mirror import ConeMirror, back_project
+from ._persist import PersistentJit
 from ._pose import Pose, so3_exp
 from ._problem import Packed, bucket, map_padded, pack, pad_rows, unstack_poses
 
@@ -48,10 +49,9 @@ def _opencv_one_thread():
             cv2.setNumThreads(n)
 
 
-_back_many = jax.jit(jax.vmap(back_project, in_axes=(None, None, 0)))
+_back_many = PersistentJit(jax.vmap(back_project, in_axes=(None, None, 0)), "back_project")
 
 
-@jax.jit
 def _rays_with_pixel_metric(camera, mirror, uv):
     """Back-projected rays and, per ray, the 2x3 map from a direction change to pixels."""
 
@@ -63,7 +63,8 @@ def _rays_with_pixel_metric(camera, mirror, uv):
     return jax.vmap(one)(uv)
 
 
-_undistort_many = jax.jit(jax.vmap(undistort, in_axes=(None, 0)))
+_rays_with_pixel_metric = PersistentJit(_rays_with_pixel_metric, "rays_with_pixel_metric")
+_undistort_many = PersistentJit(jax.vmap(undistort, in_axes=(None, 0)), "undistort")
 
 
 class CalibrationError(ValueError):
@@ -160,7 +161,8 @@ def _fit_circle(y0, rays, weight, radius, scale):
     return y, jnp.sqrt(cost / jnp.maximum(jnp.sum(weight), 1.0))
 
 
-_fit_circles = jax.jit(jax.vmap(_fit_circle, in_axes=(0, None, None, None, None)))  # all starts in one call
+# all starts in one call
+_fit_circles = PersistentJit(jax.vmap(_fit_circle, in_axes=(0, None, None, None, None)), "fit_circles")
 
 
 def _circle_pose(y):
@@ -285,7 +287,6 @@ def _pose_resid(R, t, xb, m, proj):
     return jnp.einsum("nij,nj->ni", proj, v) / rng[:, None]
 
 
-@jax.jit
 def _refine_poses(R, t, xb, m, d, metric, mask):
     """Batched Levenberg-Marquardt (20 steps) of planar poses on pixel-weighted ray distances."""
 
@@ -301,6 +302,9 @@ def _refine_poses(R, t, xb, m, d, metric, mask):
         return R, t, jnp.sqrt(cost / jnp.maximum(jnp.sum(mask), 1))
 
     return jax.vmap(one)(R, t, xb, m, d, metric, mask)
+
+
+_refine_poses = PersistentJit(_refine_poses, "refine_poses")
 
 
 def board_poses(

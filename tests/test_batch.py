@@ -60,6 +60,7 @@ def test_batch_choice():
         calibrate_many([], batch="loop", workers=0)
 
 
+@pytest.mark.slow
 def test_sharded_lockstep_calibrations_equal_one_after_another():
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu")
     code = f"SCENE = {SCENE!r}\nSEEDS = {SEEDS!r}\n" + SCRIPT

@@ -82,3 +82,42 @@ def test_two_processes_share_a_folder_at_once(tmp_path):
     assert all(json.loads(o[0].strip().splitlines()[-1])["dir"] == str(folder) for o in outs)
     res, err = run_probe({"SLCVJAX_CACHE_DIR": str(folder)}, k=5)
     assert res["hits"] >= 1 and "rror" not in err
+
+
+# a fresh process: a PersistentJit function of a pytree (an equinox module with a static
+# field, arrays of two dtypes), called twice with the same signature and once with another
+TRACED = """
+import json, jax, jax.numpy as jnp, numpy as np
+import slcvjax
+from slcvjax import _persist
+from slcvjax._pose import Pose
+
+def f(pose, x, n):
+    return {"y": pose.apply(x) * n.astype(float), "s": jnp.sum(x)}
+
+g = _persist.PersistentJit(f, "test_probe")
+pose = Pose(jnp.eye(3), jnp.array([1.0, 2.0, 3.0]))
+a = g(pose, np.ones(3), np.array(2))
+b = g(pose, np.ones(3) * 2, np.array(3))
+c = g(pose, np.ones((2, 3)), np.array(2))
+print(json.dumps({"a": np.asarray(a["y"]).tolist(), "b": float(b["s"]), "c": np.asarray(c["y"]).shape,
+                  "stats": _persist.STATS}))
+"""
+
+
+def test_traced_programs_persist_across_processes(tmp_path):
+    env = {key: v for key, v in os.environ.items() if not key.startswith(("SLCVJAX_", "JAX_COMPILATION"))}
+    env["SLCVJAX_CACHE_DIR"] = str(tmp_path)
+
+    def run():
+        out = subprocess.run(
+            [sys.executable, "-c", TRACED], env=env, capture_output=True, text=True, timeout=300, check=True
+        )
+        return json.loads(out.stdout.strip().splitlines()[-1])
+
+    first, second = run(), run()
+    assert first["stats"] == {"exported": 2, "loaded": 0}  # two signatures
+    assert second["stats"] == {"exported": 0, "loaded": 2}
+    assert first["a"] == second["a"] == [[4.0, 6.0, 8.0]][0] and first["b"] == second["b"] == 6.0
+    assert second["c"] == [2, 3]
+    assert len(list((tmp_path / "traces").glob("test_probe-*.jaxexport"))) == 2

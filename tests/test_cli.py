@@ -2,12 +2,14 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 from slcvjax import cli
 from slcvjax._calibrate import laser_errors
 from slcvjax._io import read_calibration, read_observations
 
 
+@pytest.mark.slow
 def test_demo_runs_end_to_end_from_images(tmp_path, capsys):
     out_dir = tmp_path / "demo"
     assert cli.main(["demo", "--views", "5", "--lasers", "4", "--out", str(out_dir)]) == 0

@@ -16,6 +16,7 @@ def plan():
     return scene, _design.Plan.from_scene(scene, views, noise=0.5)
 
 
+@pytest.mark.slow
 def test_prediction_equals_the_bound_of_the_simulated_calibration(plan):
     scene, p = plan
     pred = _design.predict(p)
@@ -29,6 +30,7 @@ def test_prediction_equals_the_bound_of_the_simulated_calibration(plan):
     np.testing.assert_allclose(pred.direction_std_rad, cr["direction_std_rad"], rtol=5e-3)
 
 
+@pytest.mark.slow
 def test_gradient_of_the_bound_matches_finite_differences(plan):
     _, p = plan
     c = _design._Compiled(p)

@@ -108,6 +108,7 @@ def test_chessboard_corners_match_the_truth(rendered):
     assert np.sqrt(np.mean(np.square(errs))) < 0.1
 
 
+@pytest.mark.slow
 def test_calibration_from_images_is_near_the_bound(rendered):
     _, _, exact, truth, obs, _ = rendered
     res = calibrate(obs)

@@ -70,6 +70,7 @@ def test_second_derivatives_of_undistortion_are_exact():
     np.testing.assert_allclose(np.asarray(exact), np.asarray(fd), atol=1e-6 * float(jnp.max(jnp.abs(fd))))
 
 
+@pytest.mark.slow
 def test_newton_polish_reaches_a_stationary_point(solved):
     res, arr, p0, steps = solved
     assert 1 <= steps <= 6
@@ -77,6 +78,7 @@ def test_newton_polish_reaches_a_stationary_point(solved):
     assert float(jnp.max(jnp.abs(lin.step_g))) < 1e-9
 
 
+@pytest.mark.slow
 def test_solution_derivative_matches_finite_differences(solved):
     res, arr, p0, _ = solved
     rng = np.random.default_rng(0)
@@ -98,6 +100,7 @@ def test_solution_derivative_matches_finite_differences(solved):
     np.testing.assert_allclose(np.asarray(analytic), np.asarray(fd), atol=1e-6 * scale)
 
 
+@pytest.mark.slow
 def test_differentiable_solution_under_jvp_and_the_pixel_sensitivity(solved):
     res, arr, p0, _ = solved
     rng = np.random.default_rng(1)
