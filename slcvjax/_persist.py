@@ -39,6 +39,10 @@ def _source_hash() -> str:
     return _SOURCE_HASH[0]
 
 
+def _dtype(x):
+    return x.dtype if hasattr(x, "dtype") else np.result_type(x)
+
+
 def _folder() -> Path | None:
     from . import compilation_cache_dir
 
@@ -70,11 +74,11 @@ class PersistentJit:
         device = jax.devices()[0]
         leaves = [
             jax.device_put(
-                x if isinstance(x, jax.Array) and not x.weak_type else jnp.asarray(x, dtype=np.result_type(x)), device
+                x if isinstance(x, jax.Array) and not x.weak_type else jnp.asarray(x, dtype=_dtype(x)), device
             )
             for x in leaves
         ]
-        sig = (str(tree), tuple((np.shape(x), str(np.result_type(x))) for x in leaves))
+        sig = (str(tree), tuple((x.shape, str(x.dtype)) for x in leaves))
         entry = self._calls.get(sig)
         if entry is None:
             entry = self._calls[sig] = self._entry(args, leaves, tree, sig)
@@ -107,9 +111,7 @@ class PersistentJit:
             return out_leaves
 
         try:
-            exported = jax.export.export(jax.jit(flat))(
-                *(jax.ShapeDtypeStruct(np.shape(x), np.result_type(x)) for x in leaves)
-            )
+            exported = jax.export.export(jax.jit(flat))(*(jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves))
             out_tree = box[-1]
             skeleton = jax.tree_util.tree_unflatten(out_tree, [0] * out_tree.num_leaves)
             blob = {"exported": bytes(exported.serialize()), "skeleton": pickle.dumps(skeleton)}
