@@ -451,6 +451,12 @@ class Normal(NamedTuple):
 
 def normal_equations(rows: Rows, w, g: int, nb: int, gmask, pmask) -> Normal:
     """``J^T W J`` and ``J^T W r`` in Schur form; frozen parameters get a unit diagonal."""
+    return _normal_equations(rows, w, g, nb, gmask, pmask)[0]
+
+
+def _normal_equations(rows: Rows, w, g: int, nb: int, gmask, pmask) -> tuple[Normal, Array, Array]:
+    """:func:`normal_equations` and which estimated global parameters and pose blocks the
+    weighted rows reach (a nonzero diagonal before the frozen ones get theirs)."""
     jg = rows.jg * jnp.concatenate([gmask, jnp.zeros(1)])[rows.gidx]
     jp = rows.jp * jnp.concatenate([pmask, jnp.zeros(1)])[rows.pidx][:, None]
     wr = w * rows.r
@@ -469,9 +475,10 @@ def normal_equations(rows: Rows, w, g: int, nb: int, gmask, pmask) -> Normal:
     bp = jnp.zeros((nb + 1, 6)).at[rows.pidx].add(wr[:, None] * jp)[:nb]
     # frozen parameters, and pose blocks left without any valid observation, get a unit diagonal
     empty = jnp.trace(D, axis1=1, axis2=2) <= 0.0
-    A = A + jnp.diag(jnp.where(jnp.diag(A) > 0.0, 1.0 - gmask, 1.0))
+    seen_glob = jnp.diag(A) > 0.0
+    A = A + jnp.diag(jnp.where(seen_glob, 1.0 - gmask, 1.0))
     D = D + jnp.where(empty | (pmask <= 0.0), 1.0, 0.0)[:, None, None] * jnp.eye(6)
-    return Normal(A, bg, B, D, bp)
+    return Normal(A, bg, B, D, bp), seen_glob, ~empty
 
 
 def schur_step(ne: Normal, lam) -> tuple[Array, Array]:
@@ -554,8 +561,8 @@ class Linearisation(NamedTuple):
 
     normal: Normal
     table: ObservationTable
-    seen_glob: Float[Array, " G"]  # 1 where a global parameter has a nonzero Jacobian column
-    seen_blocks: Float[Array, " NB"]  # 1 where a pose block has a valid observation
+    seen_glob: Float[Array, " G"]  # 1 where an estimated global parameter has a weighted observation
+    seen_blocks: Float[Array, " NB"]  # 1 where an estimated pose block has one
     n_valid: Float[Array, ""]  # valid scalar residuals
     weighted_sq: Float[Array, ""]  # sum of w r^2
 
@@ -582,14 +589,9 @@ def linearise(params: Params, pk: Packed, masks: Masks, loss: str, scale, kind_w
     table = observation_table(rows, n_obs)
     w_obs, rho = robust_observations(table, loss, scale, kind_weight)
     w = w_obs[rows.obs]
-    ne = normal_equations(rows, w, g, nb, masks.glob, masks.blocks)
-    seen_blocks = (
-        jax.ops.segment_sum(
-            (rows.valid & (jnp.sum(jnp.abs(rows.jp), axis=1) > 0)).astype(float), rows.pidx, num_segments=nb + 1
-        )[:nb]
-        > 0
-    )
-    seen_glob = jnp.zeros(g + 1).at[rows.gidx].add(jnp.abs(rows.jg))[:g] > 0
+    # what the weighted rows reach, from the diagonals (with every kind weighted, as the
+    # covariance is, that is every parameter with a valid observation)
+    ne, seen_glob, seen_blocks = _normal_equations(rows, w, g, nb, masks.glob, masks.blocks)
     lin = Linearisation(
         ne,
         table,
