@@ -34,7 +34,6 @@ from ._lm import (
     Masks,
     Params,
     block_costs,
-    covariance,
     covariance_of_linearisation,
     loss_index,
     make_masks,
@@ -74,7 +73,6 @@ def _solve(params: Params, arr: Packed, masks: Masks, loss: str, scale, max_step
 _RTOL_START = 1e-5
 _RTOL_TWIN = 1e-4
 _RTOL_FINAL = 1e-10
-_covariance = jax.jit(covariance, static_argnames=("loss",))
 _covariance_of_linearisation = jax.jit(covariance_of_linearisation)
 _block_costs_jit = jax.jit(block_costs, static_argnames=("n_blocks",))
 

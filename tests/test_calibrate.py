@@ -13,16 +13,16 @@ import slcvjax as sj
 from slcvjax import _lm, cli
 from slcvjax._calibrate import (
     _carried,
-    _covariance,
     _misfit_boards,
     _solve,
     calibrate,
+    covariance_of,
     cramer_rao,
     laser_errors,
     to_calibration,
 )
 from slcvjax._io import observations_to_json, read_calibration, write_observations
-from slcvjax._problem import pack, stack_poses
+from slcvjax._problem import Layout, pack, stack_poses
 from slcvjax._simulate import make_scene, simulate
 from slcvjax._staged import CalibrationError, calibrate_intrinsics, staged
 
@@ -197,11 +197,13 @@ def test_covariance_matches_a_small_monte_carlo(scene):
     p_true = _truth_params(truth, pk)
     masks = _lm.make_masks(p_true)
     # Huber at 1e9 px is plain least squares and shares the calibration's compiled solver
-    cov = np.asarray(_covariance(p_true, pk.arrays(), masks, "huber", 1e9, sigma=sigma).glob)
+    cov = np.asarray(covariance_of(p_true, pk, masks, "huber", 1e9, sigma=sigma).glob)
     errs = []
+    lay = Layout.of(pk)
+    start, m = _lm.pad_params(lay, p_true), _lm.pad_masks(lay, masks)
     for seed in range(1, 41):
         o, _ = simulate(scene, noise=sigma, seed=seed)
-        res = _solve(p_true, pack(o).arrays(), masks, loss="huber", scale=1e9, max_steps=200)
+        res = _solve(start, lay.pad_packed(pack(o)), m, loss="huber", scale=1e9, max_steps=200)
         est = res.params.rig
         e = np.concatenate(
             [
