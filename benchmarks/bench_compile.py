@@ -100,6 +100,18 @@ def part(name: str, files: list[Path]) -> dict:
     return out
 
 
+def _first(run: dict) -> dict:
+    """A part's first calibration: wall time from the process start, imports, compile seconds, sizes."""
+    first = run["first"]
+    return {
+        "wall_seconds_from_process_start": run["first_wall_from_process_start"],
+        "import_seconds": run["import_seconds"],
+        "calibration_seconds": first["seconds"],
+        "compile_seconds": first["compile_seconds"],
+        "sizes": first["sizes"],
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--lasers", type=int, default=8)
@@ -140,13 +152,7 @@ def main() -> None:
         "benchmark": "compile",
         "machine": machine(),
         "lasers": args.lasers,
-        "a_cold": {
-            "wall_seconds_from_process_start": cold["first_wall_from_process_start"],
-            "import_seconds": cold["import_seconds"],
-            "calibration_seconds": cold["first"]["seconds"],
-            "compile_seconds": cold["first"]["compile_seconds"],
-            "sizes": cold["first"]["sizes"],
-        },
+        "a_cold": _first(cold),
         "b_one_process": {
             "marginal_seconds_per_scene": marginal,
             "baseline_repeat_seconds": baseline,
@@ -154,13 +160,7 @@ def main() -> None:
             "scenes_that_compiled": sum(o["compile_seconds"]["compilations"] > 0 for o in others),
             "scenes": others,
         },
-        "c_warm_cache": {
-            "wall_seconds_from_process_start": warm["first_wall_from_process_start"],
-            "import_seconds": warm["import_seconds"],
-            "calibration_seconds": warm["first"]["seconds"],
-            "compile_seconds": warm["first"]["compile_seconds"],
-            "sizes": warm["first"]["sizes"],
-        },
+        "c_warm_cache": _first(warm),
         "all_converged": all(o["converged"] for o in [cold["first"], warm["first"], *others]),
     }
     a, b, c = result["a_cold"], result["b_one_process"], result["c_warm_cache"]

@@ -108,7 +108,8 @@ def _block_costs(params: Params, pk: Packed, loss: str, scale: float) -> np.ndar
 
 
 def covariance_of(params: Params, pk: Packed, masks: Masks, loss: str, scale, sigma: float | None = None) -> Covariance:
-    """:func:`._lm.covariance` of the problem ``pk`` (every kind weighted 1), through its shape buckets."""
+    """:func:`._lm.covariance_of_linearisation` at ``params`` of the problem ``pk`` (every kind
+    weighted 1), through its shape buckets (the compiled solve with no step linearises)."""
     layout, lin = _linearisation(params, pk, masks, loss, scale)
     cov = _covariance_of_linearisation(
         lin, pad_masks(layout, masks), None if sigma is None else jnp.asarray(sigma, dtype=float)

@@ -723,25 +723,6 @@ def covariance_of_linearisation(lin: Linearisation, masks: Masks, sigma: float |
     return Covariance(cov_g, cov_p, jnp.sqrt(s2), dof)
 
 
-def covariance(
-    params: Params,
-    pk: Packed,
-    masks: Masks,
-    loss: str,
-    scale,
-    sigma: float | None = None,
-    kind_weight: Array | None = None,
-) -> Covariance:
-    """:func:`covariance_of_linearisation` at ``params``.
-
-    ``kind_weight`` (4,) as in :func:`solve`: with weights ``(sigma / sigma_kind)^2``
-    the covariance holds for kinds of different noise.
-    """
-    kw = jnp.ones(4) if kind_weight is None else jnp.asarray(kind_weight, dtype=float)
-    lin, _ = linearise(params, pk, masks, loss, jnp.asarray(scale, dtype=float), kw)
-    return covariance_of_linearisation(lin, masks, sigma)
-
-
 def residual_rows(params: Params, pk: Packed) -> Rows:
     """The residual rows at ``params`` without Jacobians (for reports)."""
     return _rows(params, pk, with_jac=False)
