@@ -15,7 +15,11 @@ does:
     own size; the marginal seconds per scene after the first, against the baseline of the
     same process calibrating the first scene again (nothing left to compile), as a ratio;
 (c) **warm cache**: a new process with the cache (a) and (b) left calibrates a scene of
-    sizes neither saw: wall time from the start of the process, compile seconds apart.
+    sizes neither saw: wall time from the start of the process, compile seconds apart;
+(d) **padding cost** (the same process as (c)): one linearisation and one cost evaluation
+    of the joint problem at its solution with no padding at all, in its shape bucket, and
+    padded 4x past it (best of 5 repeats of 8 each), as ratios to the unpadded one: what
+    the coarse ladder of ``Layout.of`` costs a dataset.
 
 Each part runs in its own ``python`` process (``--part``), with ``SLCVJAX_CACHE_DIR`` set to
 a fresh temporary folder for the whole benchmark.  Results are printed and written as
@@ -97,6 +101,52 @@ def part(name: str, files: list[Path]) -> dict:
     if name == "cold":
         out["others"] = [one(f) for f in files[1:]]
         out["first_again"] = one(files[0])
+    else:
+        out["padding"] = padding_cost(files[0])
+    return out
+
+
+def padding_cost(path: Path) -> dict:
+    """(d): the joint problem's linearisation and cost at no padding, in its bucket, and 4x past it."""
+    import jax
+    import jax.numpy as jnp
+
+    import slcvjax as sj
+    from slcvjax import _lm
+    from slcvjax._problem import Layout
+
+    res = sj.calibrate(sj.read_observations(path))
+    lay = Layout.of(res.packed)
+    kw = jnp.ones(4)
+
+    def lin(p, pk, m, norm):
+        return _lm.linearise(p, pk, m, 0, 1.0, kw, norm)
+
+    def cost(p, pk, norm):
+        return _lm._cost(p, pk, 0, 1.0, kw, norm)
+
+    lin, cost, norms = jax.jit(lin), jax.jit(cost), jax.jit(_lm.rim_norms)
+
+    def best_ms(f, *a):
+        jax.block_until_ready(f(*a))
+        times = []
+        for _ in range(5):
+            t0 = time.perf_counter()
+            for _ in range(8):
+                r = f(*a)
+            jax.block_until_ready(r)
+            times.append((time.perf_counter() - t0) / 8 * 1e3)
+        return min(times)
+
+    out = {}
+    for name, cap in (("none", lay.n), ("bucket", lay.cap), ("bucket_x4", tuple(4 * c for c in lay.cap))):
+        pl = Layout(lay.n, cap)
+        pk, p, m = pl.pad_packed(res.packed), _lm.pad_params(pl, res.params), _lm.pad_masks(pl, res.masks)
+        norm = norms(p.rig, pk)
+        out[name] = {"sizes": list(cap), "linearise_ms": best_ms(lin, p, pk, m, norm), "cost_ms": best_ms(cost, p, pk, norm)}
+    for name in ("bucket", "bucket_x4"):
+        for k in ("linearise_ms", "cost_ms"):
+            out[name][k.replace("_ms", "_ratio")] = out[name][k] / out["none"][k]
     return out
 
 
@@ -161,6 +211,7 @@ def main() -> None:
             "scenes": others,
         },
         "c_warm_cache": _first(warm),
+        "d_padding": warm["padding"],
         "all_converged": all(o["converged"] for o in [cold["first"], warm["first"], *others]),
     }
     a, b, c = result["a_cold"], result["b_one_process"], result["c_warm_cache"]
@@ -183,6 +234,13 @@ def main() -> None:
         f"(c) warm cache, unseen sizes {c['sizes']}: {c['wall_seconds_from_process_start']:.1f} s from process start "
         f"(imports {c['import_seconds']:.1f} s, XLA compile {c['compile_seconds']['backend_compile']:.1f} s, "
         f"tracing {c['compile_seconds']['trace']:.1f} s)"
+    )
+    d = result["d_padding"]
+    print(
+        f"(d) padding: linearisation {d['none']['linearise_ms']:.1f} ms unpadded {d['none']['sizes']}; "
+        f"{d['bucket']['linearise_ratio']:.2f}x in its bucket {d['bucket']['sizes']}, "
+        f"{d['bucket_x4']['linearise_ratio']:.2f}x at 4x the bucket; cost evaluation "
+        f"{d['bucket']['cost_ratio']:.2f}x, {d['bucket_x4']['cost_ratio']:.2f}x"
     )
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -291,6 +291,8 @@ def _solve_loop(jobs: list[tuple], loss: str, max_steps: int, size: int | None =
 @jax.jit
 def _solve_batched(params, arr, masks, scale, kind_weight, rtol, loss, max_steps):
     def one(p, a, m, sc, kw, rt):
+        # a loop over the real rows under vmap runs slowly (measured: the sharded lockstep test
+        # ran past its 15-minute limit), so the trials' layouts are fine and every row is visited
         return solve(p, a, m, loss=loss, scale=sc, max_steps=max_steps, rtol=rt, kind_weight=kw, real_only=False)
 
     return jax.vmap(one)(params, arr, masks, scale, kind_weight, rtol)
@@ -346,7 +348,7 @@ def _solve_vmap(jobs: list[tuple], loss: str, max_steps: int, size: int | None =
 class _Trial:
     """One calibration's state between the passes of :func:`_calibrate_lockstep`."""
 
-    def __init__(self, obs, camera, freeze, t0):
+    def __init__(self, obs, camera, freeze, t0, fine: bool = False):
         self.obs, self.t0 = obs, t0
         st = staged(obs, camera=camera, pk=pack(obs))
         self.st, self.pk = st, st.packed  # spots without a board have one now
@@ -363,7 +365,7 @@ class _Trial:
         self.params = Params(Rig(st.camera, st.mirror, st.lasers), stack_poses(st.poses), chess_stack)
         self.masks = make_masks(self.params, set(freeze))
         self.mask_a = make_masks(self.params, set(freeze) | {"lasers"})
-        self.layout = Layout.of(self.pk)
+        self.layout = Layout.of(self.pk, fine=fine)
         self.arr = self.layout.pad_packed(self.pk)
         self.passes: list[JointPass] = []
         self.scale = 1.0
@@ -372,7 +374,7 @@ class _Trial:
 def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, solver, bar=None):
     """:func:`calibrate`'s passes for every observation set in step; ``solver`` runs a pass's solves."""
     freeze = set(freeze)
-    trials = [_Trial(o, camera, freeze, time.perf_counter()) for o in obs_list]
+    trials = [_Trial(o, camera, freeze, time.perf_counter(), fine=solver is _solve_vmap) for o in obs_list]
     size = len(trials)
 
     def run(name, chosen, lasers_held, scale, kind_weight=None, rtol=_RTOL_START):

@@ -191,7 +191,7 @@ def _predict(views, rig, T_bw, chess, pk, sigma, n_v):
     w_dot, w_spot = jax.lax.stop_gradient(w_dot), jax.lax.stop_gradient(w_spot)
     params = Params(rig, poses, chess)
     with exact_second_order():
-        rows = _lm._rows(params, pk, real_only=False)  # differentiated in reverse mode
+        rows = _lm._rows(params, pk)  # differentiated in reverse mode
     n_d, n_s = pk.dot_pose.shape[0], pk.spot_pose.shape[0]
     n_obs = _lm.n_observations(pk)
     w_obs = jnp.concatenate([w_dot, w_spot, jnp.ones(n_obs - n_d - n_s, dtype=bool)]).astype(float)

@@ -183,56 +183,44 @@ class Rows(NamedTuple):
 
 
 KIND_NAMES = ("dot", "spot", "rim", "chess")
-RIM_CHUNK = 1 << 30  # the cheap kinds (rim, corners) in one map (measured: chunks of 128-512 were slower)
-CHUNK = 64  # observations through the mirror linearised per step of the loop over the real ones
+# observations per step of the loop in :func:`accumulate`: dots and spots, rim pixels, corners
+CHUNKS = (64, 256, 128)
 
 
-def map_real(f, args: tuple, regions: list[tuple[int, Array]], chunk: int = CHUNK):
-    """``jax.vmap(f)(*args)`` computed only where the rows are real (elsewhere zeros).
+class Chunk(NamedTuple):
+    """``k`` observations of one group, ``m`` scalar rows each, with their local Jacobians."""
 
-    ``regions``: ``(start, count)`` per block of the rows (static start, traced count): the
-    real rows of a block are its first ``count``.  A loop over chunks of ``chunk`` rows
-    visits only the chunks that hold real rows, so the padding of a shape bucket costs no
-    projection.  Not reverse-differentiable (its trip count is traced).
+    r: Float[Array, "k m"]
+    jg: Float[Array, "k m 18"]  # w.r.t. the global columns ``gidx``
+    gidx: Int[Array, "k 18"]
+    jp: Float[Array, "k m 6"]  # w.r.t. the pose block ``pidx``
+    pidx: Int[Array, " k"]
+    ok: Bool[Array, " k"]  # the model predicts it
+    kind: Int[Array, " k"]
+
+
+class Group(NamedTuple):
+    """Observations that share one residual function: ``fn(*args sliced to k rows, spot_chunk)
+    -> Chunk`` (``spot_chunk``: None, or whether a chunk's real rows are spots rather than dots).
+
+    ``regions``: ``(start, count)`` per kind in the group's rows (static start, traced
+    count): the real rows of a kind are its first ``count``, the rest is padding.
     """
-    n = args[0].shape[0]
-    k = min(chunk, n)
-    if k == 0:
-        return jax.vmap(f)(*args)
-    shapes = jax.eval_shape(jax.vmap(f), *(a[:k] for a in args))
-    out = jax.tree_util.tree_map(lambda sd: jnp.zeros((n,) + sd.shape[1:], sd.dtype), shapes)
-    n_chunks = [(count + k - 1) // k for _, count in regions]
-    firsts = [sum(n_chunks[:i]) for i in range(len(regions))]  # first chunk of each region
 
-    def body(i, out):
-        start = regions[0][0] + i * k
-        for (s, _), first in zip(regions[1:], firsts[1:], strict=True):
-            start = jnp.where(i >= first, s + (i - first) * k, start)
-        part = jax.vmap(f)(*(jax.lax.dynamic_slice_in_dim(a, start, k) for a in args))
-        # a chunk that runs past the end is moved back to fit, in the slice and the update alike
-        return jax.tree_util.tree_map(lambda o, p: jax.lax.dynamic_update_slice_in_dim(o, p, start, 0), out, part)
-
-    return jax.lax.fori_loop(0, sum(n_chunks), body, out)
+    fn: object
+    args: tuple
+    regions: list
+    chunk: int  # rows per step of the loop in :func:`accumulate`
 
 
-def _rows(
-    params: Params, pk: Packed, with_jac: bool = True, rim_norm: Array | None = None, real_only: bool = True
-) -> Rows:
-    """Every residual row with its local Jacobian.
-
-    ``rim_norm``: the rim rows' normalisations (:func:`rim_norms`), held as constants; by
-    default those of ``params`` itself, so that the rim rows are the pixels' first-order
-    distances from the rim (the Jacobian still holds them constant).  The LM passes the
-    normalisation at its start, so that its cost and its Jacobian describe one function.
-    ``real_only``: project only the real dots and spots (:func:`map_real`); ``False`` maps
-    every row, padding included, and can be differentiated in reverse mode.
-    """
+def _groups(params: Params, pk: Packed, with_jac: bool, rim_norm: Array | None) -> list[Group]:
+    """The three groups of observations: dots and spots (one projection through the mirror),
+    rim pixels, chessboard corners of the direct views."""
     rig = params.rig
     cam, mir, las = rig.camera, rig.mirror, rig.lasers
     g = rig.tangent_dim
     nb = params.n_blocks
     n_p = params.poses.t.shape[0]
-    pres_d, pres_s, pres_r, pres_c = pk.present()
 
     def lin(fun, n_local, *args):
         z = jnp.zeros(n_local)
@@ -249,96 +237,136 @@ def _rows(
         return r, jac, ok
 
     cm_idx = jnp.arange(N_CM)
-    out = []
-
-    def mapped(f, args, regions, chunk=CHUNK):
-        return map_real(f, args, regions, chunk) if real_only else jax.vmap(f)(*args)
+    unused = jnp.full(N_LAS, g)
 
     # dots and spots: first each one's 3D point with its derivative in its local laser (4,
     # zero for a dot) and pose (6) parameters, then one projection through the mirror for
     # both kinds, differentiated in camera, mirror and the point (17) and chained: the costly
     # projection is traced once and carries 17 tangents, not 20 or 24
     n_d, n_s = pk.dot_pose.shape[0], pk.spot_pose.shape[0]
-    pose = jnp.concatenate([pk.dot_pose, pk.spot_pose])
-    laser = pk.spot_laser
-    x_d, jx_d, ok_d = jax.vmap(lambda *a: lin(_dot_point, N_LAS + 6, *a))(
-        params.poses.R[pk.dot_pose], params.poses.t[pk.dot_pose], pk.dot_points
-    )
-    if las.n:
-        x_s, jx_s, ok_s = jax.vmap(lambda *a: lin(_spot_point_local, N_LAS + 6, *a))(
-            las.points[laser], las.directions[laser], params.poses.R[pk.spot_pose], params.poses.t[pk.spot_pose]
-        )
-    else:
-        x_s, jx_s, ok_s = jnp.zeros((n_s, 3)), jnp.zeros((n_s, 3, N_LAS + 6)), jnp.zeros(n_s, dtype=bool)
-    x = jnp.concatenate([x_d, x_s])
-    px = jnp.concatenate([pk.dot_pixels, pk.spot_pixels])
-    r, j, ok = mapped(
-        lambda x, px: lin(_project_local, N_CM + 3, cam, mir, x, px), (x, px), [(0, pk.counts[0]), (n_d, pk.counts[1])]
-    )
-    j = jnp.concatenate([j[:, :, :N_CM], j[:, :, N_CM:] @ jnp.concatenate([jx_d, jx_s])], axis=2)
-    ok = ok & jnp.concatenate([ok_d, ok_s])
-    is_spot = jnp.arange(n_d + n_s) >= n_d
-    laser = jnp.concatenate([jnp.zeros(n_d, dtype=laser.dtype), laser])
-    n = n_d + n_s
-    lidx = jnp.where(is_spot[:, None], N_CM + N_LAS * laser[:, None] + jnp.arange(N_LAS)[None, :], g)
-    gi = jnp.concatenate([jnp.broadcast_to(cm_idx, (n, N_CM)), lidx], axis=1)
-    out.append(
-        (
-            r,
-            j[:, :, : N_CM + N_LAS],
-            jnp.broadcast_to(gi[:, None, :], (n, 2, N_CM + N_LAS)),
-            j[:, :, N_CM + N_LAS :],
-            jnp.broadcast_to(pose[:, None], (n, 2)),
-            ok,
-            jnp.where(is_spot, 1, 0),
-            jnp.concatenate([pres_d, pres_s]),
-            2,
-        )
-    )
-    # rim
-    norm = jax.lax.stop_gradient(rim_norms(rig, pk) if rim_norm is None else rim_norm)
-    r, j, ok = mapped(
-        lambda uv, s: lin(_rim, N_CM, cam, mir, uv, s), (pk.rim_pixels, norm), [(0, pk.counts[2])], RIM_CHUNK
-    )
-    n = r.shape[0]
-    jg = jnp.concatenate([j, jnp.zeros((n, 1, N_LAS))], axis=2)
-    gi = jnp.broadcast_to(jnp.concatenate([cm_idx, jnp.full(N_LAS, g)]), (n, 1, N_CM + N_LAS))
-    out.append((r, jg, gi, jnp.zeros((n, 1, 6)), jnp.full((n, 1), nb), ok, jnp.full(n, 2), pres_r, 1))
-    # chess corners
-    R, t = params.chess.R[pk.chess_pose], params.chess.t[pk.chess_pose]
-    r, j, ok = mapped(
-        lambda *a: lin(_chess, N_CAM + 6, cam, *a),
-        (R, t, pk.chess_points, pk.chess_pixels),
-        [(0, pk.counts[3])],
-        RIM_CHUNK,
-    )
-    n = r.shape[0]
-    jg = jnp.concatenate([j[:, :, :N_CAM], jnp.zeros((n, 2, N_MIR + N_LAS))], axis=2)
-    gi = jnp.broadcast_to(jnp.concatenate([jnp.arange(N_CAM), jnp.full(N_MIR + N_LAS, g)]), (n, 2, N_CM + N_LAS))
-    pi = jnp.broadcast_to(n_p + pk.chess_pose[:, None], (n, 2))
-    out.append((r, jg, gi, j[:, :, N_CAM:], pi, ok, jnp.full(n, 3), pres_c, 2))
+    zero = jnp.zeros((), dtype=pk.spot_laser.dtype)
 
-    rows = []
-    offset = 0
-    for r, jg, gi, jp, pi, ok, kind, present, m in out:
-        n = r.shape[0]
-        obs_id = jnp.broadcast_to(offset + jnp.arange(n)[:, None], (n, m))
-        offset += n
-        okm = jnp.broadcast_to((ok & present)[:, None], (n, m))
-        rows.append(
-            Rows(
-                jnp.where(okm, r, 0.0).reshape(-1),
-                jnp.where(okm[..., None], jg, 0.0).reshape(-1, N_CM + N_LAS),
-                gi.reshape(-1, N_CM + N_LAS),
-                jnp.where(okm[..., None], jp, 0.0).reshape(-1, 6),
-                pi.reshape(-1),
-                obs_id.reshape(-1),
-                jnp.broadcast_to(kind[:, None], (n, m)).reshape(-1),
-                okm.reshape(-1),
-                jnp.broadcast_to(present[:, None], (n, m)).reshape(-1),
-            )
+    def points(pose, laser, xb, px, spot, spot_chunk=None):
+        R, t = params.poses.R[pose], params.poses.t[pose]
+        x, jx, ok_x = jax.vmap(lambda *a: lin(_dot_point, N_LAS + 6, *a))(R, t, xb)
+        if las.n:
+
+            def spot_points():
+                return jax.vmap(lambda *a: lin(_spot_point_local, N_LAS + 6, *a))(
+                    las.points[laser], las.directions[laser], R, t
+                )
+
+            if spot_chunk is not None:  # a chunk of the loop's: its real rows are of one kind
+                x, jx, ok_x = jax.lax.cond(spot_chunk, spot_points, lambda: (x, jx, ok_x))
+            else:
+                s = spot_points()
+                x, jx, ok_x = (
+                    jnp.where(spot.reshape((-1,) + (1,) * (a.ndim - 1)), b, a) for a, b in zip((x, jx, ok_x), s, strict=True)
+                )
+        r, j, ok = jax.vmap(lambda x, px: lin(_project_local, N_CM + 3, cam, mir, x, px))(x, px)
+        j = jnp.concatenate([j[:, :, :N_CM], j[:, :, N_CM:] @ jx], axis=2)
+        lidx = jnp.where(spot[:, None], N_CM + N_LAS * laser[:, None] + jnp.arange(N_LAS)[None, :], g)
+        gidx = jnp.concatenate([jnp.broadcast_to(cm_idx, (r.shape[0], N_CM)), lidx], axis=1)
+        return Chunk(r, j[:, :, : N_CM + N_LAS], gidx, j[:, :, N_CM + N_LAS :], pose, ok & ok_x, spot.astype(int))
+
+    dots_spots = Group(
+        points,
+        (
+            jnp.concatenate([pk.dot_pose, pk.spot_pose]),
+            jnp.concatenate([jnp.broadcast_to(zero, (n_d,)), pk.spot_laser]),
+            jnp.concatenate([pk.dot_points, jnp.zeros((n_s, 3))]),
+            jnp.concatenate([pk.dot_pixels, pk.spot_pixels]),
+            jnp.arange(n_d + n_s) >= n_d,
+        ),
+        [(0, pk.counts[0]), (n_d, pk.counts[1])],
+        CHUNKS[0],
+    )
+
+    def rim(uv, norm, spot_chunk=None):
+        r, j, ok = jax.vmap(lambda uv, s: lin(_rim, N_CM, cam, mir, uv, s))(uv, norm)
+        k = r.shape[0]
+        return Chunk(
+            r,
+            jnp.concatenate([j, jnp.zeros((k, 1, N_LAS))], axis=2),
+            jnp.broadcast_to(jnp.concatenate([cm_idx, unused]), (k, N_CM + N_LAS)),
+            jnp.zeros((k, 1, 6)),
+            jnp.full(k, nb),
+            ok,
+            jnp.full(k, 2),
         )
-    return Rows(*(jnp.concatenate(parts) for parts in zip(*rows, strict=True)))
+
+    norm = jax.lax.stop_gradient(rim_norms(rig, pk) if rim_norm is None else rim_norm)
+    rim_group = Group(rim, (pk.rim_pixels, norm), [(0, pk.counts[2])], CHUNKS[1])
+
+    def chess(xb, px, pose, spot_chunk=None):
+        R, t = params.chess.R[pose], params.chess.t[pose]
+        r, j, ok = jax.vmap(lambda *a: lin(_chess, N_CAM + 6, cam, *a))(R, t, xb, px)
+        k = r.shape[0]
+        return Chunk(
+            r,
+            jnp.concatenate([j[:, :, :N_CAM], jnp.zeros((k, 2, N_MIR + N_LAS))], axis=2),
+            jnp.broadcast_to(jnp.concatenate([jnp.arange(N_CAM), jnp.full(N_MIR + N_LAS, g)]), (k, N_CM + N_LAS)),
+            j[:, :, N_CAM:],
+            n_p + pose,
+            ok,
+            jnp.full(k, 3),
+        )
+
+    chess_group = Group(
+        chess,
+        (pk.chess_points, pk.chess_pixels, pk.chess_pose),
+        [(0, pk.counts[3])],
+        CHUNKS[2],
+    )
+    return [dots_spots, rim_group, chess_group]
+
+
+def _flat(c: Chunk, present: Bool[Array, " k"], first_obs) -> Rows:
+    """A chunk's scalar rows (invalid or padded observations zeroed), its observations numbered from ``first_obs``."""
+    k, m = c.r.shape
+    okm = jnp.broadcast_to((c.ok & present)[:, None], (k, m))
+
+    def per_row(x):
+        return jnp.broadcast_to(x[:, None], (k, m)).reshape(-1)
+
+    return Rows(
+        jnp.where(okm, c.r, 0.0).reshape(-1),
+        jnp.where(okm[..., None], c.jg, 0.0).reshape(-1, N_CM + N_LAS),
+        jnp.broadcast_to(c.gidx[:, None, :], (k, m, N_CM + N_LAS)).reshape(-1, N_CM + N_LAS),
+        jnp.where(okm[..., None], c.jp, 0.0).reshape(-1, 6),
+        per_row(c.pidx),
+        per_row(first_obs + jnp.arange(k)),
+        per_row(c.kind),
+        okm.reshape(-1),
+        per_row(present),
+    )
+
+
+def _rows(params: Params, pk: Packed, with_jac: bool = True, rim_norm: Array | None = None) -> Rows:
+    """Every residual row with its local Jacobian, padding included (zeroed), in one ``vmap``
+    per group (reverse-differentiable; the solver uses :func:`accumulate` instead).
+
+    ``rim_norm``: the rim rows' normalisations (:func:`rim_norms`), held as constants; by
+    default those of ``params`` itself, so that the rim rows are the pixels' first-order
+    distances from the rim (the Jacobian still holds them constant).  The LM passes the
+    normalisation at its start, so that its cost and its Jacobian describe one function.
+    """
+    parts, offset = [], 0
+    for grp in _groups(params, pk, with_jac, rim_norm):
+        n = grp.args[0].shape[0]
+        present = _present(grp.regions, n)
+        parts.append(_flat(grp.fn(*grp.args), present, offset))
+        offset += n
+    return Rows(*(jnp.concatenate(p) for p in zip(*parts, strict=True)))
+
+
+def _present(regions, n: int) -> Bool[Array, " n"]:
+    """Which rows of a group of ``n`` rows are real (see :class:`Group`)."""
+    idx = jnp.arange(n)
+    out = jnp.zeros(n, dtype=bool)
+    for (start, count), end in zip(regions, [s for s, _ in regions[1:]] + [n], strict=True):
+        out = out | ((idx >= start) & (idx < start + jnp.minimum(count, end - start)))
+    return out
 
 
 def n_observations(pk: Packed) -> int:
@@ -449,36 +477,145 @@ class Normal(NamedTuple):
     bp: Float[Array, "NB 6"]
 
 
-def normal_equations(rows: Rows, w, g: int, nb: int, gmask, pmask) -> Normal:
-    """``J^T W J`` and ``J^T W r`` in Schur form; frozen parameters get a unit diagonal."""
-    return _normal_equations(rows, w, g, nb, gmask, pmask)[0]
+def zero_normal(g: int, nb: int) -> Normal:
+    """Empty sums for :func:`add_rows`: one spare column ``g`` and block ``nb`` take the rows'
+    "none" entries (unused global columns, observations without a pose block)."""
+    return Normal(jnp.zeros((g + 1, g + 1)), jnp.zeros(g + 1), jnp.zeros((nb + 1, g + 1, 6)), jnp.zeros((nb + 1, 6, 6)), jnp.zeros((nb + 1, 6)))
 
 
-def _normal_equations(rows: Rows, w, g: int, nb: int, gmask, pmask) -> tuple[Normal, Array, Array]:
-    """:func:`normal_equations` and which estimated global parameters and pose blocks the
-    weighted rows reach (a nonzero diagonal before the frozen ones get theirs)."""
+def add_rows(ne: Normal, rows: Rows, w, gmask, pmask) -> Normal:
+    """``ne`` (from :func:`zero_normal`) plus the rows' ``J^T W J`` and ``J^T W r``; frozen
+    columns (``gmask``, ``pmask`` 0) get no entries."""
     jg = rows.jg * jnp.concatenate([gmask, jnp.zeros(1)])[rows.gidx]
     jp = rows.jp * jnp.concatenate([pmask, jnp.zeros(1)])[rows.pidx][:, None]
     wr = w * rows.r
     # the global columns as one dense (rows, G) matrix: its products are matrix products,
     # three times faster on a CPU than scattering each row's 18 x 18 outer product
     n = rows.r.shape[0]
-    J = jnp.zeros((n, g + 1)).at[jnp.arange(n)[:, None], rows.gidx].add(jg)[:, :g]
-    A = (J * w[:, None]).T @ J
-    bg = J.T @ wr
-    D = jnp.zeros((nb + 1, 6, 6)).at[rows.pidx].add(w[:, None, None] * jp[:, :, None] * jp[:, None, :])[:nb]
-    B = (
-        jnp.zeros((nb + 1, g + 1, 6))
-        .at[rows.pidx[:, None], rows.gidx]
-        .add(w[:, None, None] * jg[:, :, None] * jp[:, None, :])[:nb, :g]
+    J = jnp.zeros((n, ne.A.shape[0])).at[jnp.arange(n)[:, None], rows.gidx].add(jg)
+    return Normal(
+        ne.A + (J * w[:, None]).T @ J,
+        ne.bg + J.T @ wr,
+        ne.B.at[rows.pidx[:, None], rows.gidx].add(w[:, None, None] * jg[:, :, None] * jp[:, None, :]),
+        ne.D.at[rows.pidx].add(w[:, None, None] * jp[:, :, None] * jp[:, None, :]),
+        ne.bp.at[rows.pidx].add(wr[:, None] * jp),
     )
-    bp = jnp.zeros((nb + 1, 6)).at[rows.pidx].add(wr[:, None] * jp)[:nb]
-    # frozen parameters, and pose blocks left without any valid observation, get a unit diagonal
+
+
+def finish_normal(ne: Normal, gmask, pmask) -> tuple[Normal, Array, Array]:
+    """The normal equations of the sums ``ne`` (spare column and block cut), which estimated
+    global parameters and pose blocks the weighted rows reach (a nonzero diagonal), and a
+    unit diagonal for the frozen parameters and the pose blocks without any observation."""
+    g, nb = ne.A.shape[0] - 1, ne.D.shape[0] - 1
+    A, bg, B, D, bp = ne.A[:g, :g], ne.bg[:g], ne.B[:nb, :g], ne.D[:nb], ne.bp[:nb]
     empty = jnp.trace(D, axis1=1, axis2=2) <= 0.0
     seen_glob = jnp.diag(A) > 0.0
     A = A + jnp.diag(jnp.where(seen_glob, 1.0 - gmask, 1.0))
     D = D + jnp.where(empty | (pmask <= 0.0), 1.0, 0.0)[:, None, None] * jnp.eye(6)
     return Normal(A, bg, B, D, bp), seen_glob, ~empty
+
+
+def normal_equations(rows: Rows, w, g: int, nb: int, gmask, pmask) -> Normal:
+    """``J^T W J`` and ``J^T W r`` of ``rows`` in Schur form; frozen parameters get a unit diagonal."""
+    return finish_normal(add_rows(zero_normal(g, nb), rows, w, gmask, pmask), gmask, pmask)[0]
+
+
+def _chunk_bounds(regions, n: int, k: int, i, n_chunks):
+    """Chunk ``i`` of a group: where it starts (moved back to fit, as the slice is), the
+    row it was meant to start at, and the end of its kind's real rows."""
+    ends = [s for s, _ in regions[1:]] + [n]
+    firsts = [sum(n_chunks[:j]) for j in range(len(regions))]
+    meant, real_end = regions[0][0] + i * k, regions[0][0] + jnp.minimum(regions[0][1], ends[0] - regions[0][0])
+    for (s, count), end, first in zip(regions[1:], ends[1:], firsts[1:], strict=True):
+        here = i >= first
+        meant = jnp.where(here, s + (i - first) * k, meant)
+        real_end = jnp.where(here, s + jnp.minimum(count, end - s), real_end)
+    return jnp.clip(meant, 0, n - k), meant, real_end
+
+
+class Sums(NamedTuple):
+    """What :func:`accumulate` sums over the observations."""
+
+    normal: Normal  # raw sums with one spare row/column for "none" (see :func:`finish_normal`)
+    sq: Float[Array, " N"]  # per observation: squared residual norm
+    valid: Bool[Array, " N"]  # per observation: the model predicts it
+    cost: Float[Array, ""]  # robust cost
+    n_valid: Float[Array, ""]  # valid scalar rows
+    weighted_sq: Float[Array, ""]  # sum of w r^2
+
+
+def accumulate(
+    params: Params,
+    pk: Packed,
+    masks: "Masks | None",
+    loss,
+    scale,
+    kind_weight,
+    rim_norm: Array | None = None,
+    with_jac: bool = True,
+    real_only: bool = True,
+) -> Sums:
+    """The normal equations, the robust cost and the per-observation residuals, summed over
+    chunks of :data:`CHUNK` observations.
+
+    ``real_only``: the loop visits only the chunks that hold real rows (its trip count is
+    a traced value), so the padding of a shape bucket costs nothing but memory; ``False``
+    visits every chunk (a static loop, reverse-differentiable).  ``masks`` None: no normal
+    equations (the cost alone).
+    """
+    g, nb = params.n_global, params.n_blocks
+    kind_weight = jnp.ones(4) if kind_weight is None else jnp.asarray(kind_weight, dtype=float)
+    ne = zero_normal(g, nb)
+    sq_parts, valid_parts = [], []
+    cost = n_valid = wsq = jnp.asarray(0.0)
+    for grp in _groups(params, pk, with_jac and masks is not None, rim_norm):
+        n = grp.args[0].shape[0]
+        if n == 0:
+            sq_parts.append(jnp.zeros(0))
+            valid_parts.append(jnp.zeros(0, dtype=bool))
+            continue
+        k = min(grp.chunk, n)
+        ends = [s for s, _ in grp.regions[1:]] + [n]
+        if real_only:
+            n_chunks = [(jnp.minimum(c, e - s) + k - 1) // k for (s, c), e in zip(grp.regions, ends, strict=True)]
+        else:
+            n_chunks = [(e - s + k - 1) // k for (s, _), e in zip(grp.regions, ends, strict=True)]
+
+        def body(i, carry, grp=grp, n=n, k=k, n_chunks=n_chunks):
+            ne, sq, valid, cost, n_valid, wsq = carry
+            start, meant, real_end = _chunk_bounds(grp.regions, n, k, i, n_chunks)
+            idx = start + jnp.arange(k)
+            present = (idx >= meant) & (idx < real_end)
+            c = grp.fn(*(jax.lax.dynamic_slice_in_dim(a, start, k) for a in grp.args), spot_chunk=meant >= grp.regions[-1][0])
+            rows = _flat(c, present, 0)
+            k_, m_ = c.r.shape
+            t = ObservationTable(
+                jnp.sum(rows.r.reshape(k_, m_) ** 2, axis=1), c.kind, c.ok & present, present, c.pidx
+            )
+            w_obs, rho = robust_observations(t, loss, scale, kind_weight)
+            w = w_obs[rows.obs]
+            if masks is not None and with_jac:
+                ne = add_rows(ne, rows, w, masks.glob, masks.blocks)
+
+            def put(out, new):
+                return jax.lax.dynamic_update_slice_in_dim(
+                    out, jnp.where(present, new, jax.lax.dynamic_slice_in_dim(out, start, k)), start, 0
+                )
+
+            return (
+                ne,
+                put(sq, t.sq),
+                put(valid, t.valid),
+                cost + jnp.sum(rho),
+                n_valid + jnp.sum(rows.valid.astype(float)),
+                wsq + jnp.sum(w * rows.r**2),
+            )
+
+        carry = (ne, jnp.zeros(n), jnp.zeros(n, dtype=bool), cost, n_valid, wsq)
+        ne, sq, valid, cost, n_valid, wsq = jax.lax.fori_loop(0, sum(n_chunks), body, carry)
+        sq_parts.append(sq)
+        valid_parts.append(valid)
+    return Sums(ne, jnp.concatenate(sq_parts), jnp.concatenate(valid_parts), cost, n_valid, wsq)
 
 
 def schur_step(ne: Normal, lam) -> tuple[Array, Array]:
@@ -577,30 +714,28 @@ class LMResult(NamedTuple):
 
 
 def _cost(params, pk, loss, scale, kind_weight, rim_norm=None, real_only=True):
-    rows = _rows(params, pk, with_jac=False, rim_norm=rim_norm, real_only=real_only)
-    _, c = robust_weights(rows, n_observations(pk), loss, scale, kind_weight)
-    return c
+    return accumulate(params, pk, None, loss, scale, kind_weight, rim_norm, False, real_only).cost
+
+
+def _table_arrays(params: Params, pk: Packed) -> tuple[Array, Array, Array]:
+    """Per observation (dots, spots, rim pixels, corners): its kind, whether it is real, its pose block."""
+    n_d, n_s, n_r, n_c = pk.dot_pose.shape[0], pk.spot_pose.shape[0], pk.rim_pixels.shape[0], pk.chess_pose.shape[0]
+    kind = jnp.concatenate([jnp.full(n_d, 0), jnp.full(n_s, 1), jnp.full(n_r, 2), jnp.full(n_c, 3)])
+    block = jnp.concatenate(
+        [pk.dot_pose, pk.spot_pose, jnp.full(n_r, params.n_blocks), params.poses.t.shape[0] + pk.chess_pose]
+    )
+    return kind, jnp.concatenate(pk.present()), block
 
 
 def linearise(params: Params, pk: Packed, masks: Masks, loss: str, scale, kind_weight, rim_norm=None, real_only=True):
-    """:class:`Linearisation` at ``params`` and the robust cost there (``real_only``: see :func:`_rows`)."""
-    g, nb, n_obs = params.n_global, params.n_blocks, n_observations(pk)
-    rows = _rows(params, pk, rim_norm=rim_norm, real_only=real_only)
-    table = observation_table(rows, n_obs)
-    w_obs, rho = robust_observations(table, loss, scale, kind_weight)
-    w = w_obs[rows.obs]
+    """:class:`Linearisation` at ``params`` and the robust cost there (``real_only``: see :func:`accumulate`)."""
+    s = accumulate(params, pk, masks, loss, scale, kind_weight, rim_norm, True, real_only)
     # what the weighted rows reach, from the diagonals (with every kind weighted, as the
     # covariance is, that is every parameter with a valid observation)
-    ne, seen_glob, seen_blocks = _normal_equations(rows, w, g, nb, masks.glob, masks.blocks)
-    lin = Linearisation(
-        ne,
-        table,
-        seen_glob.astype(float),
-        seen_blocks.astype(float),
-        jnp.sum(rows.valid.astype(float)),
-        jnp.sum(w * rows.r**2),
-    )
-    return lin, jnp.sum(rho)
+    ne, seen_glob, seen_blocks = finish_normal(s.normal, masks.glob, masks.blocks)
+    kind, present, block = _table_arrays(params, pk)
+    table = ObservationTable(s.sq, kind, s.valid, present, block)
+    return Linearisation(ne, table, seen_glob.astype(float), seen_blocks.astype(float), s.n_valid, s.weighted_sq), s.cost
 
 
 def solve(
@@ -623,9 +758,8 @@ def solve(
     covariance, the bound and the reports use that, so that one compiled solve serves
     them all (``max_steps`` and ``rtol`` are values, not compile-time constants).
     ``kind_weight`` (4,) weighs dots, spots, rim and chess corners (0 drops a kind;
-    freeze what it alone determines).  ``real_only=False`` projects the padding too, in one
-    ``vmap`` instead of a loop over the real rows (for trials in lockstep under ``vmap``,
-    where a loop's trip count would differ from trial to trial).
+    freeze what it alone determines).  ``real_only``: see :func:`accumulate` (under
+    ``vmap`` the loops run to the longest trial's real rows).
     """
     loss = loss_index(loss)
     scale = jnp.asarray(scale, dtype=float)

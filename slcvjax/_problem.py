@@ -5,7 +5,8 @@ depends on, so the residuals of any number of views, boards and lasers are one
 ``vmap`` (no Python loop in the traced graph).
 
 **Shape buckets.**  A compiled function is compiled once per shape of its arguments, so
-every array that enters one is padded to a bucket size (:func:`bucket`: a power of two),
+every array that enters one is padded to a bucket size (:func:`bucket`: powers of two
+for the staged stages' maps, a coarse ladder for the joint problem, see :meth:`Layout.of`),
 and the padding is masked out exactly: ``Packed.counts`` holds the real number of dots,
 spots, rim pixels and chessboard corners, the padded rows come after the real ones and
 are never counted (no cost, no weight, no Jacobian, no degree of freedom), and padded
@@ -143,18 +144,27 @@ def pack(obs: Observations, use_views: bool = True, use_direct: bool = True) -> 
 # ----------------------------------------------------------------------------- shape buckets
 
 MIN_BUCKET = 8
+# the joint problem's ladders (see :meth:`Layout.of`): (floor, step) of observation rows and of pose blocks
+OBSERVATION_LADDER = (4096, 4)
+POSE_LADDER = (64, 4)
 
 
-def bucket(n: int) -> int:
-    """The padded size of an axis of ``n`` rows: the next power of two (at least ``MIN_BUCKET``; 0 stays 0).
+def bucket(n: int, floor: int = MIN_BUCKET, step: int = 2) -> int:
+    """The padded size of an axis of ``n`` rows: the smallest ``floor * step**k`` that holds
+    them (0 stays 0).
 
-    Powers of two: a dataset pays at most twice the rows of its real size in the cheap
-    vectorised parts (the expensive projections through the mirror run only over the real
-    rows, see ``_lm._rows``), and a size range of 2x shares one compilation.
+    The default (powers of two from 8) serves the staged stages' maps, which evaluate every
+    row, padding included: a dataset pays at most twice its rows and a size range of 2x
+    shares one compilation.
     """
     if n < 0:
         raise ValueError(f"a size cannot be negative, got {n}")
-    return 0 if n == 0 else max(MIN_BUCKET, 1 << (n - 1).bit_length())
+    if n == 0:
+        return 0
+    size = floor
+    while size < n:
+        size *= step
+    return size
 
 
 def pad_rows(x, size: int, fill=None) -> np.ndarray:
@@ -188,11 +198,18 @@ class Layout(NamedTuple):
     cap: tuple[int, int, int, int, int, int]
 
     @staticmethod
-    def of(pk: "Packed", n_poses: int | None = None, n_chess: int | None = None) -> "Layout":
+    def of(pk: "Packed", n_poses: int | None = None, n_chess: int | None = None, fine: bool = False) -> "Layout":
         """The layout of ``pk`` (its real rows) with every size rounded up by :func:`bucket`.
 
+        The joint problem's ladders are coarse (:data:`OBSERVATION_LADDER`: 4096 rows, then
+        steps of 4x; :data:`POSE_LADDER`: 64 poses, then 4x): its loops visit only the real
+        rows (``._lm.accumulate``), so the padding costs memory alone (measured by
+        ``benchmarks/bench_compile.py``'s padding part), and typical datasets of every size
+        share one compilation.
+
         ``n_poses`` / ``n_chess``: the number of board / direct-view poses (by default
-        those of ``pk``'s keys).
+        those of ``pk``'s keys).  ``fine``: powers of two instead, for solves that visit
+        every row, padding included (trials in lockstep under ``vmap``).
         """
         c = np.asarray(pk.counts)
         n = (
@@ -203,7 +220,8 @@ class Layout(NamedTuple):
             pk.n_poses if n_poses is None else n_poses,
             pk.n_chess if n_chess is None else n_chess,
         )
-        return Layout(n, tuple(bucket(k) for k in n))  # type: ignore[arg-type]
+        obs, poses = ((MIN_BUCKET, 2),) * 2 if fine else (OBSERVATION_LADDER, POSE_LADDER)
+        return Layout(n, tuple(bucket(k, *(obs if i < 4 else poses)) for i, k in enumerate(n)))  # type: ignore[arg-type]
 
     def pad_packed(self, pk: "Packed") -> "Packed":
         """``pk``'s arrays padded to the layout's sizes, without the static keys (which would

@@ -41,8 +41,22 @@ def test_residuals_vanish_at_the_truth_and_grow_away_from_it(packed_truth):
 
 def test_bucket_ladder():
     assert [bucket(n) for n in (0, 1, 8, 9, 100, 128, 129)] == [0, 8, 8, 16, 128, 128, 256]
+    assert [bucket(n, 4096, 4) for n in (0, 1, 4096, 4097, 16384, 16385)] == [0, 4096, 4096, 16384, 16384, 65536]
     with pytest.raises(ValueError):
         bucket(-1)
+
+
+def test_datasets_of_different_sizes_share_one_layout():
+    """Two scenes with different numbers of views, lasers and so of every observation: one set
+    of padded sizes (the joint problem's coarse ladder), and a fine one on request."""
+    sizes = []
+    for n_lasers, n_views, seed in ((3, 3, 0), (8, 9, 1)):
+        obs, _ = simulate(make_scene("paper", n_lasers=n_lasers, n_views=n_views), noise=0.5, seed=seed)
+        sizes.append(Layout.of(pack(obs)))
+    assert sizes[0].n != sizes[1].n
+    assert sizes[0].cap == sizes[1].cap
+    fine = Layout.of(pack(obs), fine=True)
+    assert fine.cap == tuple(bucket(n) for n in fine.n) and fine.cap != sizes[1].cap
 
 
 def test_map_padded_equals_the_unpadded_map():
