@@ -183,11 +183,36 @@ def pad_rows(x, size: int, fill=None) -> np.ndarray:
     return np.concatenate([x, np.broadcast_to(row, (size - n,) + x.shape[1:])])
 
 
+def map_rows(vfn, chunk: int = 256):
+    """``vfn(*consts, rows)`` (a map over the rows' first axis) as ``f(*consts, rows, count)``
+    that evaluates only the first ``count`` rows, in a loop over chunks of ``chunk`` (the rest
+    of the output is zeros): padded rows then cost nothing.  For :func:`map_padded`."""
+
+    def run(*a):
+        *consts, rows, count = a
+        n = rows.shape[0]
+        k = min(chunk, n)
+        if k == 0:
+            return vfn(*consts, rows)
+        shapes = jax.eval_shape(vfn, *consts, rows[:k])
+        out = jax.tree_util.tree_map(lambda sd: jnp.zeros((n,) + sd.shape[1:], sd.dtype), shapes)
+
+        def body(i, out):
+            start = jnp.minimum(i * k, n - k)  # the last chunk moved back to fit: rows done twice, alike
+            part = vfn(*consts, jax.lax.dynamic_slice_in_dim(rows, start, k))
+            return jax.tree_util.tree_map(lambda o, p: jax.lax.dynamic_update_slice_in_dim(o, p, start, 0), out, part)
+
+        return jax.lax.fori_loop(0, (count + k - 1) // k, body, out)
+
+    return run
+
+
 def map_padded(fn, *args, rows):
-    """``fn(*args, rows)`` with ``rows`` padded to its bucket (:func:`bucket`) and every output
-    cut back to the real rows: a compiled ``vmap`` over rows shared by all sizes of a bucket."""
+    """``fn(*args, rows, count)`` (see :func:`map_rows`) with ``rows`` padded to the joint
+    problem's bucket (:data:`OBSERVATION_LADDER`) and every output cut back to the real rows:
+    one compilation for every size of a bucket, and the padding costs nothing."""
     n = np.shape(rows)[0]
-    out = fn(*args, jnp.asarray(pad_rows(rows, bucket(n))))
+    out = fn(*args, jnp.asarray(pad_rows(rows, bucket(n, *OBSERVATION_LADDER))), jnp.asarray(n))
     return jax.tree_util.tree_map(lambda x: np.asarray(x)[:n], out)
 
 

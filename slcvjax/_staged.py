@@ -29,7 +29,7 @@ from ._lasers import Lasers
 from ._mirror import ConeMirror, back_project
 from ._persist import PersistentJit
 from ._pose import Pose, so3_exp
-from ._problem import Packed, bucket, map_padded, pack, pad_rows, unstack_poses
+from ._problem import OBSERVATION_LADDER, POSE_LADDER, Packed, bucket, map_padded, map_rows, pack, pad_rows, unstack_poses
 
 _CV_LOCK = threading.Lock()
 
@@ -49,7 +49,7 @@ def _opencv_one_thread():
             cv2.setNumThreads(n)
 
 
-_back_many = PersistentJit(jax.vmap(back_project, in_axes=(None, None, 0)), "back_project")
+_back_many = PersistentJit(map_rows(jax.vmap(back_project, in_axes=(None, None, 0))), "back_project")
 
 
 def _rays_with_pixel_metric(camera, mirror, uv):
@@ -63,8 +63,8 @@ def _rays_with_pixel_metric(camera, mirror, uv):
     return jax.vmap(one)(uv)
 
 
-_rays_with_pixel_metric = PersistentJit(_rays_with_pixel_metric, "rays_with_pixel_metric")
-_undistort_many = PersistentJit(jax.vmap(undistort, in_axes=(None, 0)), "undistort")
+_rays_with_pixel_metric = PersistentJit(map_rows(_rays_with_pixel_metric), "rays_with_pixel_metric")
+_undistort_many = PersistentJit(map_rows(jax.vmap(undistort, in_axes=(None, 0))), "undistort")
 
 
 class CalibrationError(ValueError):
@@ -198,7 +198,7 @@ def mirror_from_rim(
     scale = f / d0
     tilts = np.radians(4.0) * np.array([(0, 0), (1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1), (1, -1), (-1, 1)])
     y0 = np.concatenate([np.broadcast_to(c0, (len(tilts), 3)), tilts], axis=1)
-    size = bucket(len(rays))
+    size = bucket(len(rays), *OBSERVATION_LADDER)
     padded = pad_rows(rays, size, np.array([0.0, 0.0, 1.0]))
     weight = (np.arange(size) < len(rays)).astype(float)
     ys, rmss = (
@@ -327,8 +327,8 @@ def board_poses(
         raise CalibrationError(
             f"views[{vi}].boards.{b}: {int(counts[k])} dots back-project onto the mirror (need at least 4 for its pose)"
         )
-    mx = bucket(int(np.bincount(idx, minlength=n_p).max()))
-    shape = (bucket(n_p), mx)  # padded boards have no point (mask 0) and are cut off below
+    mx = bucket(int(np.bincount(idx, minlength=n_p).max()), *POSE_LADDER)
+    shape = (bucket(n_p, *POSE_LADDER), mx)  # padded boards have no point (mask 0) and are cut off below
     xb, m, d = np.zeros(shape + (3,)), np.zeros(shape + (3,)), np.tile([0.0, 0.0, 1.0], shape + (1,))
     met, mask = np.zeros(shape + (2, 3)), np.zeros(shape)
     slot = np.zeros(n_p, dtype=int)

@@ -3,7 +3,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from slcvjax._problem import Layout, bucket, dot_residuals, map_padded, pack, spot_residuals, stack_poses
+from slcvjax._problem import Layout, bucket, dot_residuals, map_padded, map_rows, pack, spot_residuals, stack_poses
 from slcvjax._simulate import make_scene, simulate
 
 
@@ -59,13 +59,17 @@ def test_datasets_of_different_sizes_share_one_layout():
     assert fine.cap == tuple(bucket(n) for n in fine.n) and fine.cap != sizes[1].cap
 
 
-def test_map_padded_equals_the_unpadded_map():
-    f = jax.jit(jax.vmap(lambda a, x: (a * jnp.sin(x), jnp.sum(x)), in_axes=(None, 0)))
-    rows = np.random.default_rng(0).normal(size=(13, 2))
-    out = map_padded(f, 2.0, rows=rows)
-    ref = f(2.0, jnp.asarray(rows))
-    assert out[0].shape == (13, 2) and out[1].shape == (13,)
+@pytest.mark.parametrize("n", [0, 13, 300])
+def test_map_padded_equals_the_unpadded_map(n):
+    """Padded to its bucket, looped over chunks of 256 (the last moved back to fit): the
+    real rows as the plain map gives them."""
+    vf = jax.vmap(lambda a, x: (a * jnp.sin(x), jnp.sum(x)), in_axes=(None, 0))
+    rows = np.random.default_rng(0).normal(size=(n, 2))
+    out = map_padded(jax.jit(map_rows(vf)), 2.0, rows=rows)
+    ref = vf(2.0, jnp.asarray(rows))
+    assert out[0].shape == (n, 2) and out[1].shape == (n,)
     np.testing.assert_array_equal(np.asarray(out[0]), np.asarray(ref[0]))
+    np.testing.assert_array_equal(np.asarray(out[1]), np.asarray(ref[1]))
 
 
 def _rel(a, b):
