@@ -143,7 +143,11 @@ def padding_cost(path: Path) -> dict:
         pl = Layout(lay.n, cap)
         pk, p, m = pl.pad_packed(res.packed), _lm.pad_params(pl, res.params), _lm.pad_masks(pl, res.masks)
         norm = norms(p.rig, pk)
-        out[name] = {"sizes": list(cap), "linearise_ms": best_ms(lin, p, pk, m, norm), "cost_ms": best_ms(cost, p, pk, norm)}
+        out[name] = {
+            "sizes": list(cap),
+            "linearise_ms": best_ms(lin, p, pk, m, norm),
+            "cost_ms": best_ms(cost, p, pk, norm),
+        }
     for name in ("bucket", "bucket_x4"):
         for k in ("linearise_ms", "cost_ms"):
             out[name][k.replace("_ms", "_ratio")] = out[name][k] / out["none"][k]

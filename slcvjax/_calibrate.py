@@ -238,10 +238,9 @@ def calibrate_many(
       compilation; the results equal ``loop``'s to round-off;
     * ``auto``: ``vmap`` where the default device is an accelerator, ``loop`` on a CPU.
 
-    ``workers`` (``loop``): calibrations run at once in threads.  The compiled solves
-    release the interpreter, so on a CPU two threads overlap one trial's host steps and
-    small kernels with another's: on 2 cores 0.36 s per calibration of the preset against
-    0.46 s one at a time (``benchmarks/bench_calibrate.py``); results equal to round-off.
+    ``workers`` (``loop``): calibrations run at once in threads, each one's host steps
+    (the staged stages, OpenCV, NumPy) beside another's compiled programs, which run one at
+    a time (see ``._persist``); results equal to round-off.
 
     ``kwargs`` are :func:`calibrate`'s (``camera``, ``freeze``, ``loss``, ...).  With
     ``progress`` a bar counts the calibrations (in ``vmap`` they finish together, and the

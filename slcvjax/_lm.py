@@ -261,7 +261,8 @@ def _groups(params: Params, pk: Packed, with_jac: bool, rim_norm: Array | None) 
             else:
                 s = spot_points()
                 x, jx, ok_x = (
-                    jnp.where(spot.reshape((-1,) + (1,) * (a.ndim - 1)), b, a) for a, b in zip((x, jx, ok_x), s, strict=True)
+                    jnp.where(spot.reshape((-1,) + (1,) * (a.ndim - 1)), b, a)
+                    for a, b in zip((x, jx, ok_x), s, strict=True)
                 )
         r, j, ok = jax.vmap(lambda x, px: lin(_project_local, N_CM + 3, cam, mir, x, px))(x, px)
         j = jnp.concatenate([j[:, :, :N_CM], j[:, :, N_CM:] @ jx], axis=2)
@@ -480,7 +481,13 @@ class Normal(NamedTuple):
 def zero_normal(g: int, nb: int) -> Normal:
     """Empty sums for :func:`add_rows`: one spare column ``g`` and block ``nb`` take the rows'
     "none" entries (unused global columns, observations without a pose block)."""
-    return Normal(jnp.zeros((g + 1, g + 1)), jnp.zeros(g + 1), jnp.zeros((nb + 1, g + 1, 6)), jnp.zeros((nb + 1, 6, 6)), jnp.zeros((nb + 1, 6)))
+    return Normal(
+        jnp.zeros((g + 1, g + 1)),
+        jnp.zeros(g + 1),
+        jnp.zeros((nb + 1, g + 1, 6)),
+        jnp.zeros((nb + 1, 6, 6)),
+        jnp.zeros((nb + 1, 6)),
+    )
 
 
 def add_rows(ne: Normal, rows: Rows, w, gmask, pmask) -> Normal:
@@ -586,12 +593,12 @@ def accumulate(
             start, meant, real_end = _chunk_bounds(grp.regions, n, k, i, n_chunks)
             idx = start + jnp.arange(k)
             present = (idx >= meant) & (idx < real_end)
-            c = grp.fn(*(jax.lax.dynamic_slice_in_dim(a, start, k) for a in grp.args), spot_chunk=meant >= grp.regions[-1][0])
+            c = grp.fn(
+                *(jax.lax.dynamic_slice_in_dim(a, start, k) for a in grp.args), spot_chunk=meant >= grp.regions[-1][0]
+            )
             rows = _flat(c, present, 0)
             k_, m_ = c.r.shape
-            t = ObservationTable(
-                jnp.sum(rows.r.reshape(k_, m_) ** 2, axis=1), c.kind, c.ok & present, present, c.pidx
-            )
+            t = ObservationTable(jnp.sum(rows.r.reshape(k_, m_) ** 2, axis=1), c.kind, c.ok & present, present, c.pidx)
             w_obs, rho = robust_observations(t, loss, scale, kind_weight)
             w = w_obs[rows.obs]
             if masks is not None and with_jac:
@@ -735,7 +742,9 @@ def linearise(params: Params, pk: Packed, masks: Masks, loss: str, scale, kind_w
     ne, seen_glob, seen_blocks = finish_normal(s.normal, masks.glob, masks.blocks)
     kind, present, block = _table_arrays(params, pk)
     table = ObservationTable(s.sq, kind, s.valid, present, block)
-    return Linearisation(ne, table, seen_glob.astype(float), seen_blocks.astype(float), s.n_valid, s.weighted_sq), s.cost
+    return Linearisation(
+        ne, table, seen_glob.astype(float), seen_blocks.astype(float), s.n_valid, s.weighted_sq
+    ), s.cost
 
 
 def solve(

@@ -16,6 +16,7 @@ cache is off, or exporting fails, the function is an ordinary ``jax.jit``.
 import hashlib
 import pickle
 import tempfile
+import threading
 from pathlib import Path
 
 import jax
@@ -24,6 +25,10 @@ import jaxlib
 import numpy as np
 
 STATS = {"exported": 0, "loaded": 0}
+# Programs with loops run one at a time: two executed at once from threads
+# (``calibrate_many(..., workers=2)``) wedged XLA's CPU thread pool for good in
+# ``benchmarks/bench_calibrate.py`` (every thread waiting on its result, no CPU used).
+_EXECUTE = threading.Lock()
 _SOURCE_HASH: list[str] = []
 
 
@@ -82,10 +87,11 @@ class PersistentJit:
         entry = self._calls.get(sig)
         if entry is None:
             entry = self._calls[sig] = self._entry(args, leaves, tree, sig)
-        if entry is False:
-            return self.jit(*args)
-        call, out_tree = entry
-        return jax.tree_util.tree_unflatten(out_tree, call(*leaves))
+        with _EXECUTE:
+            if entry is False:
+                return jax.block_until_ready(self.jit(*args))
+            call, out_tree = entry
+            return jax.tree_util.tree_unflatten(out_tree, jax.block_until_ready(call(*leaves)))
 
     def _entry(self, args, leaves, tree, sig):
         folder = _folder()

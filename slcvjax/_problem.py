@@ -5,9 +5,10 @@ depends on, so the residuals of any number of views, boards and lasers are one
 ``vmap`` (no Python loop in the traced graph).
 
 **Shape buckets.**  A compiled function is compiled once per shape of its arguments, so
-every array that enters one is padded to a bucket size (:func:`bucket`: powers of two
-for the staged stages' maps, a coarse ladder for the joint problem, see :meth:`Layout.of`),
-and the padding is masked out exactly: ``Packed.counts`` holds the real number of dots,
+every array that enters one is padded to a bucket size (:func:`bucket`: a coarse ladder
+for the joint problem and the staged stages' maps, which visit only the real rows, see
+:meth:`Layout.of` and :func:`map_rows`; powers of two where every row is visited), and
+the padding is masked out exactly: ``Packed.counts`` holds the real number of dots,
 spots, rim pixels and chessboard corners, the padded rows come after the real ones and
 are never counted (no cost, no weight, no Jacobian, no degree of freedom), and padded
 pose blocks have no observation and a zero freeze mask.  Datasets whose sizes fall in the
@@ -153,9 +154,9 @@ def bucket(n: int, floor: int = MIN_BUCKET, step: int = 2) -> int:
     """The padded size of an axis of ``n`` rows: the smallest ``floor * step**k`` that holds
     them (0 stays 0).
 
-    The default (powers of two from 8) serves the staged stages' maps, which evaluate every
-    row, padding included: a dataset pays at most twice its rows and a size range of 2x
-    shares one compilation.
+    The default (powers of two from 8) serves the functions that evaluate every row, padding
+    included (trials in lockstep under ``vmap``): a dataset pays at most twice its rows and a
+    size range of 2x shares one compilation.
     """
     if n < 0:
         raise ValueError(f"a size cannot be negative, got {n}")
