@@ -563,7 +563,7 @@ def accumulate(
     real_only: bool = True,
 ) -> Sums:
     """The normal equations, the robust cost and the per-observation residuals, summed over
-    chunks of :data:`CHUNK` observations.
+    chunks of each group's observations (:data:`CHUNKS`; see :func:`_groups`).
 
     ``real_only``: the loop visits only the chunks that hold real rows (its trip count is
     a traced value), so the padding of a shape bucket costs nothing but memory; ``False``

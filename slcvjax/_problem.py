@@ -229,9 +229,9 @@ class Layout(NamedTuple):
 
         The joint problem's ladders are coarse (:data:`OBSERVATION_LADDER`: 4096 rows, then
         steps of 4x; :data:`POSE_LADDER`: 64 poses, then 4x): its loops visit only the real
-        rows (``._lm.accumulate``), so the padding costs memory alone (measured by
-        ``benchmarks/bench_compile.py``'s padding part), and typical datasets of every size
-        share one compilation.
+        rows (``._lm.accumulate``), so the padding costs little (measured by
+        ``benchmarks/bench_compile.py``'s padding part), and every dataset up to 4096
+        observations of each kind and 64 poses of each kind shares one compilation.
 
         ``n_poses`` / ``n_chess``: the number of board / direct-view poses (by default
         those of ``pk``'s keys).  ``fine``: powers of two instead, for solves that visit
