@@ -361,12 +361,19 @@ def _rows(params: Params, pk: Packed, with_jac: bool = True, rim_norm: Array | N
     return Rows(*(jnp.concatenate(p) for p in zip(*parts, strict=True)))
 
 
+def _spans(regions, n: int) -> list[tuple[int, int, Array]]:
+    """``(start, end, real_end)`` of each kind's rows in a group of ``n`` rows (see :class:`Group`):
+    its rows are ``start:end``, the real ones ``start:real_end``."""
+    ends = [s for s, _ in regions[1:]] + [n]
+    return [(s, e, s + jnp.minimum(count, e - s)) for (s, count), e in zip(regions, ends, strict=True)]
+
+
 def _present(regions, n: int) -> Bool[Array, " n"]:
-    """Which rows of a group of ``n`` rows are real (see :class:`Group`)."""
+    """Which rows of a group of ``n`` rows are real."""
     idx = jnp.arange(n)
     out = jnp.zeros(n, dtype=bool)
-    for (start, count), end in zip(regions, [s for s, _ in regions[1:]] + [n], strict=True):
-        out = out | ((idx >= start) & (idx < start + jnp.minimum(count, end - start)))
+    for start, _, real_end in _spans(regions, n):
+        out = out | ((idx >= start) & (idx < real_end))
     return out
 
 
@@ -527,16 +534,15 @@ def normal_equations(rows: Rows, w, g: int, nb: int, gmask, pmask) -> Normal:
     return finish_normal(add_rows(zero_normal(g, nb), rows, w, gmask, pmask), gmask, pmask)[0]
 
 
-def _chunk_bounds(regions, n: int, k: int, i, n_chunks):
-    """Chunk ``i`` of a group: where it starts (moved back to fit, as the slice is), the
-    row it was meant to start at, and the end of its kind's real rows."""
-    ends = [s for s, _ in regions[1:]] + [n]
-    firsts = [sum(n_chunks[:j]) for j in range(len(regions))]
-    meant, real_end = regions[0][0] + i * k, regions[0][0] + jnp.minimum(regions[0][1], ends[0] - regions[0][0])
-    for (s, count), end, first in zip(regions[1:], ends[1:], firsts[1:], strict=True):
+def _chunk_bounds(spans, n: int, k: int, i, n_chunks):
+    """Chunk ``i`` of a group (``spans`` from :func:`_spans`): where it starts (moved back to
+    fit, as the slice is), the row it was meant to start at, and the end of its kind's real rows."""
+    meant, real_end, first = spans[0][0] + i * k, spans[0][2], 0
+    for (s, _, e), n_prev in zip(spans[1:], n_chunks[:-1], strict=True):
+        first = first + n_prev
         here = i >= first
         meant = jnp.where(here, s + (i - first) * k, meant)
-        real_end = jnp.where(here, s + jnp.minimum(count, end - s), real_end)
+        real_end = jnp.where(here, e, real_end)
     return jnp.clip(meant, 0, n - k), meant, real_end
 
 
@@ -582,15 +588,12 @@ def accumulate(
             valid_parts.append(jnp.zeros(0, dtype=bool))
             continue
         k = min(grp.chunk, n)
-        ends = [s for s, _ in grp.regions[1:]] + [n]
-        if real_only:
-            n_chunks = [(jnp.minimum(c, e - s) + k - 1) // k for (s, c), e in zip(grp.regions, ends, strict=True)]
-        else:
-            n_chunks = [(e - s + k - 1) // k for (s, _), e in zip(grp.regions, ends, strict=True)]
+        spans = _spans(grp.regions, n)
+        n_chunks = [((r if real_only else e) - s + k - 1) // k for s, e, r in spans]
 
-        def body(i, carry, grp=grp, n=n, k=k, n_chunks=n_chunks):
+        def body(i, carry, grp=grp, n=n, k=k, spans=spans, n_chunks=n_chunks):
             ne, sq, valid, cost, n_valid, wsq = carry
-            start, meant, real_end = _chunk_bounds(grp.regions, n, k, i, n_chunks)
+            start, meant, real_end = _chunk_bounds(spans, n, k, i, n_chunks)
             idx = start + jnp.arange(k)
             present = (idx >= meant) & (idx < real_end)
             c = grp.fn(
