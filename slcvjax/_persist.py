@@ -86,14 +86,14 @@ class PersistentJit:
         sig = (str(tree), tuple((x.shape, str(x.dtype)) for x in leaves))
         entry = self._calls.get(sig)
         if entry is None:
-            entry = self._calls[sig] = self._entry(args, leaves, tree, sig)
+            entry = self._calls[sig] = self._entry(leaves, tree, sig)
         with _EXECUTE:
             if entry is False:
                 return jax.block_until_ready(self.jit(*args))
             call, out_tree = entry
             return jax.tree_util.tree_unflatten(out_tree, jax.block_until_ready(call(*leaves)))
 
-    def _entry(self, args, leaves, tree, sig):
+    def _entry(self, leaves, tree, sig):
         folder = _folder()
         if folder is None:
             return False
