@@ -46,7 +46,8 @@ from ._persist import PersistentJit
 from ._pose import Pose
 from ._problem import Layout, Packed, pack, stack_poses, unstack_poses
 from ._rig import Rig, project_board_points, project_rim, project_spots
-from ._staged import CalibrationError, Staged, _flipped, board_poses, fit_lasers, staged
+from ._safe import std_of_variance
+from ._staged import RAYLEIGH_MEDIAN, CalibrationError, Staged, _flipped, board_poses, fit_lasers, staged
 
 _solve_jit = PersistentJit(solve, "solve")
 
@@ -76,7 +77,6 @@ _RTOL_FINAL = 1e-10
 _covariance_of_linearisation = jax.jit(covariance_of_linearisation)
 _block_costs_jit = jax.jit(block_costs, static_argnames=("n_blocks",))
 
-RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))  # median of |r| / sigma for 2D Gaussian r
 HALF_NORMAL_MEDIAN = 0.6744897501960817  # median of |r| / sigma for 1D Gaussian r
 
 
@@ -165,6 +165,7 @@ class CalibrationResult:
     passes: list[JointPass]
     timings: dict = field(default_factory=dict)
     kind_sigma: dict = field(default_factory=dict)  # per kind noise sigma (px) from its median residual
+    repairs: list = field(default_factory=list)  # observations relabelled or left out (see :func:`_repair`)
 
     @property
     def rig(self) -> Rig:
@@ -364,10 +365,17 @@ class _Trial:
         self.params = Params(Rig(st.camera, st.mirror, st.lasers), stack_poses(st.poses), chess_stack)
         self.masks = make_masks(self.params, set(freeze))
         self.mask_a = make_masks(self.params, set(freeze) | {"lasers"})
-        self.layout = Layout.of(self.pk, fine=fine)
-        self.arr = self.layout.pad_packed(self.pk)
+        self.fine = fine
+        self.use(self.pk)
         self.passes: list[JointPass] = []
+        self.repairs: list[dict] = []
         self.scale = 1.0
+
+    def use(self, pk: Packed) -> None:
+        """Solve the problem ``pk`` from now on (the same poses; fewer or relabelled observations)."""
+        self.pk = pk
+        self.layout = Layout.of(pk, fine=self.fine)
+        self.arr = self.layout.pad_packed(pk)
 
 
 def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, solver, bar=None):
@@ -376,15 +384,16 @@ def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, s
     trials = [_Trial(o, camera, freeze, time.perf_counter(), fine=solver is _solve_vmap) for o in obs_list]
     size = len(trials)
 
-    def run(name, chosen, lasers_held, scale, kind_weight=None, rtol=_RTOL_START):
-        """One LM pass of the ``chosen`` trials from where they are; ``scale(trial)``: its loss scale."""
+    def run(name, chosen, lasers_held, scale, kind_weight=None, rtol=_RTOL_START, pass_loss=None):
+        """One LM pass of the ``chosen`` trials from where they are; ``scale(trial)``: its loss
+        scale; ``pass_loss``: a loss for this pass instead of the calibration's."""
         for i in chosen:
             trials[i].scale = scale(trials[i])
         jobs = [
             _job(tr, tr.params, tr.mask_a if lasers_held else tr.masks, kind_weight, rtol)
             for tr in (trials[i] for i in chosen)
         ]
-        for i, res in zip(chosen, solver(jobs, loss, max_steps, size=size), strict=True):
+        for i, res in zip(chosen, solver(jobs, pass_loss or loss, max_steps, size=size), strict=True):
             tr = trials[i]
             tr.passes.append(
                 JointPass(
@@ -421,18 +430,19 @@ def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, s
         if again:
             run("A2: after re-flipping", again, True, robust_scale(0.1), [1.0, 0.0, 1.0, 1.0])
 
-    def other_starts(chosen, turned_only: bool) -> list[int]:
+    def other_starts(chosen, turned_only: bool, pass_loss=None) -> list[int]:
         """Each board pose of the ``chosen`` trials swapped for its flipped twin, or for its pose
         carried over from another view (:func:`_carried`), where that fits better, both refined
-        with the rig held (``turned_only``: only swaps that turn the board).  Returns the trials
-        where any board turned."""
+        with the rig held (``turned_only``: only swaps that turn the board; ``pass_loss``: a loss
+        for this instead of the calibration's).  Returns the trials where any board turned."""
+        this_loss = pass_loss or loss
         chosen = [i for i in chosen if trials[i].pk.n_poses]
         starts = [_candidates(trials[i].params, trials[i].pk, trials[i].masks) for i in chosen]
         # one solve per kind of start over the chosen trials: the batch shapes of a pass
         solved = [
             solver(
                 [_job(trials[i], c, hold, None, _RTOL_TWIN) for i, (c, hold) in zip(chosen, kind, strict=True)],
-                loss,
+                this_loss,
                 max_steps,
                 size=size,
             )
@@ -444,19 +454,21 @@ def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, s
             n_moved = 0
             for res in (kind[n_i] for kind in solved):
                 other = unpad_params(tr.layout, res.params)
-                tr.params, n = _keep_better(tr.params, other, tr.pk, loss, tr.scale, turned_only)
+                tr.params, n = _keep_better(tr.params, other, tr.pk, this_loss, tr.scale, turned_only)
                 n_moved += n
             if n_moved:
                 tr.passes[-1].result += f"; {n_moved} board pose(s) turned after it"
                 turned.append(i)
         return turned
 
-    # B: lasers refitted, then everything
+    # B: lasers refitted on the refined geometry (spots relabelled or left out where they
+    # fit another laser's line or none), then everything
     if "lasers" not in freeze:
         for tr in trials:
             p = tr.params
-            lasers, _ = fit_lasers(p.rig.camera, p.rig.mirror, tr.pk, unstack_poses(p.poses), tr.obs.n_lasers)
-            tr.params = Params(Rig(p.rig.camera, p.rig.mirror, lasers), p.poses, p.chess)
+            fit = fit_lasers(p.rig.camera, p.rig.mirror, tr.pk, unstack_poses(p.poses), tr.obs.n_lasers)
+            tr.params = Params(Rig(p.rig.camera, p.rig.mirror, fit.lasers), p.poses, p.chess)
+            _relabel_spots(tr, fit)
     run("B: joint", every, False, robust_scale(0.05))
     # boards whose other starts (refined with dots and spots, the rig held) fit better are swapped
     for tr in trials:
@@ -467,6 +479,21 @@ def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, s
     # its own noise (the rim's is larger in rendered images) made the lasers worse from images
     # (benchmarks/images_vs_file.py), where the dots' errors are mostly systematic
     run("C: joint (final)", every, False, lambda tr: tr.scale, rtol=_RTOL_FINAL)
+    # observations far beyond the noise (gross outliers: a wrong dot, a reflection taken
+    # for a spot) are left out and C run again, so that none is spread over good ones
+    for i in every:
+        _leave_out(
+            trials[i],
+            lambda i=i: other_starts([i], turned_only=False, pass_loss="cauchy"),
+            lambda pass_loss, i=i: run(
+                "C3: joint (Cauchy loss, to find the outliers)" if pass_loss else "C3: joint (outliers left out)",
+                [i],
+                False,
+                lambda tr: tr.scale,
+                rtol=_RTOL_FINAL,
+                pass_loss=pass_loss,
+            ),
+        )
     # a pose carried after B from a board still wrong then may be wrong yet: where a board
     # fits badly, the other starts again, and C again where a board turned, until none turns
     # (at most three times)
@@ -492,9 +519,119 @@ def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, s
                 tr.passes,
                 {"staged_s": tr.t_staged, "total_s": time.perf_counter() - tr.t0},
                 dict(zip(KIND_NAMES, sigmas.tolist(), strict=True)),
+                tr.repairs,
             )
         )
     return out
+
+
+OUTLIER_SIGMAS = 5.0  # a dot or spot with a residual beyond this many sigmas of its kind is left out
+MIN_BOARD_DOTS = 4  # a board pose with fewer dots than this left is left out whole
+
+
+def _spot_source(tr: "_Trial", i: int, pk: Packed | None = None) -> dict:
+    """Spot row ``i`` of ``pk`` (the trial's problem by default) as the report names it."""
+    pk = tr.pk if pk is None else pk
+    if not pk.spot_src:
+        return {"kind": "spot", "view": None, "index": -1, "board": None}
+    v, j = pk.spot_src[i]
+    return {"kind": "spot", "view": tr.obs.views[v].name, "index": j, "board": tr.obs.views[v].spots[j].board}
+
+
+def _relabel_spots(tr: "_Trial", fit) -> None:
+    """Give the trial's spots the labels of :func:`._staged.fit_lasers` (another laser, or
+    left out), recording each change in ``tr.repairs``."""
+    own = np.asarray(tr.pk.spot_laser)[: fit.labels.shape[0]]
+    changed = np.flatnonzero(fit.labels != own)
+    if not changed.size:
+        return
+    for i in changed:
+        new = int(fit.labels[i])
+        r_own = fit.residual[i, own[i]]
+        item = _spot_source(tr, i) | {
+            "action": "relabelled" if new >= 0 else "left out",
+            "laser": int(own[i]),
+            "residual_px": float(r_own) if np.isfinite(r_own) else None,
+        }
+        if new >= 0:
+            item |= {"new_laser": new, "new_residual_px": float(fit.residual[i, new])}
+            item["reason"] = f"lies on laser {new}'s line, not on its own (threshold {fit.threshold:.3g} px)"
+        else:
+            item["reason"] = f"lies on no laser's line, or on more than one (threshold {fit.threshold:.3g} px)"
+        tr.repairs.append(item)
+    n_d = int(tr.pk.counts[0])
+    tr.use(tr.pk.select(np.ones(n_d, bool), fit.labels >= 0, np.maximum(fit.labels, 0)))
+
+
+def _outliers(tr: "_Trial", pk: Packed) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Which dots and spots of ``pk`` lie beyond :data:`OUTLIER_SIGMAS` sigmas of their kind at
+    the trial's solution (each kind's sigma from the median residual of the observations the
+    trial keeps), with every observation's residual norm and kind and the sigmas."""
+    sig = kind_sigmas(tr.params, tr.pk)
+    norm, kind, ok = _per_observation(tr.params, pk)
+    n_d, n_s = int(pk.counts[0]), int(pk.counts[1])
+    bad = np.zeros(n_d + n_s, bool)
+    for k in (0, 1):
+        if np.isfinite(sig[k]):
+            bad |= (ok & (kind == k) & (norm > OUTLIER_SIGMAS * sig[k]))[: n_d + n_s]
+    return bad, norm, kind, sig
+
+
+def _leave_out(tr: "_Trial", starts, rerun, rounds: int = 3) -> None:
+    """Leave out the trial's gross outliers: the dots and spots beyond :data:`OUTLIER_SIGMAS`
+    sigmas (:func:`_outliers`).  Where there are any, the final pass runs first with the
+    redescending Cauchy loss (``rerun("cauchy")``), under which a gross outlier no longer drags
+    its board's pose, so that the outliers found then are the wrong observations, not the good
+    ones of a dragged board (and every board tries its other starts under that loss,
+    ``starts()``: a board whose own dots are a third wrong is found again from its neighbours);
+    those are left out and the final pass runs again with the
+    calibration's loss (``rerun(None)``); observations left out that fit the new solution come
+    back, until the set left out stays the same (at most ``rounds`` times).  A board left with
+    fewer than :data:`MIN_BOARD_DOTS` dots is left out whole (its pose is not determined).
+    What stays left out is recorded in ``tr.repairs``."""
+    full = tr.pk
+    n_d = int(full.counts[0])
+    out = np.zeros(n_d + int(full.counts[1]), bool)
+    if not _outliers(tr, full)[0].any():
+        return
+    rerun("cauchy")
+    starts()
+    rerun("cauchy")
+    for _ in range(rounds):
+        bad = _outliers(tr, full)[0]
+        # a board with too few dots left: every dot and spot of it out
+        pose_d, pose_s = np.asarray(full.dot_pose)[:n_d], np.asarray(full.spot_pose)[: len(out) - n_d]
+        kept = np.bincount(pose_d[~bad[:n_d]], minlength=full.n_poses)
+        weak = (kept < MIN_BOARD_DOTS) & (np.bincount(pose_d, minlength=full.n_poses) >= MIN_BOARD_DOTS)
+        whole = np.concatenate([weak[pose_d], weak[pose_s]])
+        bad |= whole
+        if np.array_equal(bad, out):
+            break
+        out = bad
+        tr.use(full.select(~out[:n_d], ~out[n_d:]))
+        rerun(None)
+    if not out.any():  # none under the Cauchy loss: back to the calibration's own
+        rerun(None)
+        return
+    _, norm, kind, sig = _outliers(tr, full)
+    for i in np.flatnonzero(out):
+        if i < n_d:
+            v, b, j = full.dot_src[i] if full.dot_src else (-1, "", -1)
+            item = {"kind": "dot", "view": tr.obs.views[v].name if v >= 0 else None, "index": j, "board": b}
+        else:
+            src = _spot_source(tr, i - n_d, full)
+            item = src | {"laser": int(np.asarray(full.spot_laser)[i - n_d])}
+        k = int(kind[i])
+        if whole[i]:
+            why = f"its board's pose in this view is not determined: fewer than {MIN_BOARD_DOTS} of its dots agree"
+        else:
+            why = f"residual {norm[i]:.3g} px beyond {OUTLIER_SIGMAS:g} sigma of the {KIND_NAMES[k]}s "
+            why += f"({OUTLIER_SIGMAS * sig[k]:.3g} px)"
+        tr.repairs.append(
+            item
+            | {"action": "left out", "residual_px": None if whole[i] else float(norm[i]), "reason": why}
+            | ({"whole_board": True} if whole[i] else {})
+        )
 
 
 def _job(tr: "_Trial", params: Params, masks: Masks, kind_weight, rtol: float) -> tuple:
@@ -630,7 +767,8 @@ def _laser_offset(lasers: Lasers, i: int, x_ref, delta4):
 
 
 def laser_std(rig: Rig, cov_glob: np.ndarray, x_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per laser: position std (mm) of the line at ``x_ref`` and direction std (rad)."""
+    """Per laser: position std (mm) of the line at ``x_ref`` and direction std (rad); NaN for a
+    laser whose covariance block is not positive (undetermined)."""
     n = rig.lasers.n
     pos, ang = np.zeros(n), np.zeros(n)
     cov_glob = np.asarray(cov_glob)
@@ -638,8 +776,12 @@ def laser_std(rig: Rig, cov_glob: np.ndarray, x_ref: np.ndarray) -> tuple[np.nda
         sl = slice(14 + 4 * i, 18 + 4 * i)
         c = cov_glob[sl, sl]
         j = np.asarray(jax.jacfwd(lambda d, i=i: _laser_offset(rig.lasers, i, jnp.asarray(x_ref[i]), d))(jnp.zeros(4)))
-        pos[i] = np.sqrt(max(np.trace(j @ c @ j.T), 0.0))
-        ang[i] = np.sqrt(max(c[2, 2] + c[3, 3], 0.0))
+        # a block that is not positive: the data do not determine this laser (NaN, not 0)
+        definite = bool(np.all(np.isfinite(c))) and (
+            np.linalg.eigvalsh(0.5 * (c + c.T)).min() >= -1e-9 * max(np.abs(c).max(), 1e-300)
+        )
+        pos[i] = std_of_variance(np.trace(j @ c @ j.T)) if definite else np.nan
+        ang[i] = std_of_variance(c[2, 2] + c[3, 3]) if definite else np.nan
     return pos, ang
 
 
@@ -687,7 +829,9 @@ def cramer_rao(truth: Calibration, obs: Observations, sigma: float, packed: Pack
 
 
 def _obs_table(result: CalibrationResult):
-    """Per observation: kind, 2D residual norm (px), validity, and its (view, board, laser) labels."""
+    """Per observation: kind, 2D residual norm (px), validity, its (view, board, laser) labels
+    and its index in its view (a dot's in its board, a spot's among the view's spots; -1 where
+    the problem was not packed from observations)."""
     pk = result.packed
     norm, kind, ok = _per_observation(result.params, pk)
     n_obs = norm.size
@@ -695,15 +839,27 @@ def _obs_table(result: CalibrationResult):
     view = np.full(n_obs, -1)
     board = np.full(n_obs, "", dtype=object)
     laser = np.full(n_obs, -1)
+    index = np.full(n_obs, -1)
     keys = pk.pose_keys
     for i, k in enumerate(np.asarray(pk.dot_pose)):
         view[i], board[i] = keys[k]
+    for i, (_, _, j) in enumerate(pk.dot_src):
+        index[i] = j
     for j, (k, las) in enumerate(zip(np.asarray(pk.spot_pose), np.asarray(pk.spot_laser), strict=True)):
         view[n_d + j], board[n_d + j] = keys[k]
         laser[n_d + j] = las
+    for j, (_, i) in enumerate(pk.spot_src):
+        index[n_d + j] = i
     for j, k in enumerate(np.asarray(pk.chess_pose)):
         view[n_d + n_s + n_r + j] = pk.chess_keys[k]
-    return norm, kind, ok, view, board, laser
+    return norm, kind, ok, view, board, laser, index
+
+
+def _finite_or_none(x):
+    """A number or array as JSON: its values, with None for a NaN (undetermined) one."""
+    a = np.asarray(x, dtype=float)
+    out = [float(v) if np.isfinite(v) else None for v in a.ravel()]
+    return out[0] if a.ndim == 0 else out
 
 
 def _rms(x):
@@ -712,7 +868,7 @@ def _rms(x):
 
 def report(result: CalibrationResult, obs: Observations) -> dict:
     """The ``residuals`` and ``uncertainty`` sections of the output (plain JSON types)."""
-    norm, kind, ok, view, board, laser = _obs_table(result)
+    norm, kind, ok, view, board, laser, index = _obs_table(result)
     sigma = float(result.cov.sigma)
     outlier = ok & (kind <= 1) & (norm > 5.0 * sigma)
     per_view = {obs.views[v].name: _rms(norm[ok & (kind <= 1) & (view == v)]) for v in range(len(obs.views))}
@@ -728,6 +884,7 @@ def report(result: CalibrationResult, obs: Observations) -> dict:
             "kind": KIND_NAMES[kind[i]],
             "view": obs.views[view[i]].name,
             "board": board[i],
+            "index": int(index[i]),
             "residual_px": float(norm[i]),
         }
         if kind[i] == 1:
@@ -745,24 +902,32 @@ def report(result: CalibrationResult, obs: Observations) -> dict:
         "per_direct_view_rms_px": per_direct,
         "invalid": int(np.sum(~ok)),
         "outliers": outliers,
+        "repairs": result.repairs,
         "rim_outliers": int(np.sum(ok & (kind == 2) & (norm > 5.0 * (result.kind_sigma.get("rim") or sigma)))),
         "loss": {"kind": result.loss, "scale_px": result.scale},
     }
     cov = np.asarray(result.cov.glob)
-    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    sd = std_of_variance(np.diag(cov))
     x_ref = laser_working_points(result.rig, result.params.poses, result.packed)
     pos, ang = laser_std(result.rig, cov, x_ref)
     uncertainty = {
         "sigma_px": sigma,
-        "camera_std": dict(zip(["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"], sd[:9].tolist(), strict=True)),
-        "mirror_std": {"apex_mm": sd[9:12].tolist(), "axis_tilt_deg": np.degrees(sd[12:14]).tolist()},
+        "camera_std": dict(
+            zip(["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"], _finite_or_none(sd[:9]), strict=True)
+        ),
+        "mirror_std": {"apex_mm": _finite_or_none(sd[9:12]), "axis_tilt_deg": _finite_or_none(np.degrees(sd[12:14]))},
         "lasers": [
             {
                 "working_point": x_ref[i].tolist(),
                 "working_range_mm": float(np.linalg.norm(x_ref[i])),
-                "position_std_mm": float(pos[i]),
-                "direction_std_deg": float(np.degrees(ang[i])),
+                "position_std_mm": _finite_or_none(pos[i]),
+                "direction_std_deg": _finite_or_none(np.degrees(ang[i])),
             }
+            | (
+                {}
+                if np.isfinite(pos[i]) and np.isfinite(ang[i])
+                else {"status": "undetermined: its covariance is not positive (the data do not fix this laser)"}
+            )
             for i in range(result.rig.lasers.n)
         ],
         "covariance": {

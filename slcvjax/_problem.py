@@ -50,6 +50,9 @@ class Packed(eqx.Module):
             them are padding (see the module docstring).
         pose_keys: ``(view index, board name)`` of each board pose (static).
         chess_keys: index of the calibration view of each direct-view pose (static).
+        dot_src: ``(view index, board name, dot index)`` of each dot row (static; empty
+            where the rows come from elsewhere than :func:`pack`).
+        spot_src: ``(view index, spot index in the view)`` of each spot row (static, likewise).
     """
 
     dot_pose: Int[Array, " D"]
@@ -65,6 +68,8 @@ class Packed(eqx.Module):
     counts: Int[Array, "4"]
     pose_keys: tuple = eqx.field(static=True)
     chess_keys: tuple = eqx.field(static=True)
+    dot_src: tuple = eqx.field(static=True, default=())
+    spot_src: tuple = eqx.field(static=True, default=())
 
     @property
     def n_poses(self) -> int:
@@ -76,7 +81,31 @@ class Packed(eqx.Module):
 
     def arrays(self) -> "Packed":
         """The arrays alone, unpadded (no static keys): for a compiled function of this problem's own sizes."""
-        return dataclasses.replace(self, pose_keys=(), chess_keys=())
+        return dataclasses.replace(self, pose_keys=(), chess_keys=(), dot_src=(), spot_src=())
+
+    def select(self, keep_dots, keep_spots, spot_laser=None) -> "Packed":
+        """The problem with only the dots and spots where ``keep_dots`` / ``keep_spots`` (bool,
+        over the real rows) hold, and the spots' laser labels replaced by ``spot_laser`` (over
+        the real rows, before the selection) where given.  Host arrays, keys kept."""
+        n_d, n_s = int(self.counts[0]), int(self.counts[1])
+        kd, ks = np.asarray(keep_dots, bool), np.asarray(keep_spots, bool)
+        if kd.shape != (n_d,) or ks.shape != (n_s,):
+            raise ValueError(f"select: masks of {n_d} dots and {n_s} spots expected, got {kd.shape} and {ks.shape}")
+        labels = np.asarray(self.spot_laser)[:n_s] if spot_laser is None else np.asarray(spot_laser, np.int64)
+        c = np.asarray(self.counts).copy()
+        c[:2] = kd.sum(), ks.sum()
+        return dataclasses.replace(
+            self,
+            dot_pose=np.asarray(self.dot_pose)[:n_d][kd],
+            dot_points=np.asarray(self.dot_points)[:n_d][kd],
+            dot_pixels=np.asarray(self.dot_pixels)[:n_d][kd],
+            spot_pose=np.asarray(self.spot_pose)[:n_s][ks],
+            spot_laser=labels[ks],
+            spot_pixels=np.asarray(self.spot_pixels)[:n_s][ks],
+            counts=c,
+            dot_src=tuple(x for x, k in zip(self.dot_src, kd, strict=True) if k) if self.dot_src else (),
+            spot_src=tuple(x for x, k in zip(self.spot_src, ks, strict=True) if k) if self.spot_src else (),
+        )
 
     def present(self) -> tuple[Bool[Array, " D"], Bool[Array, " S"], Bool[Array, " R"], Bool[Array, " C"]]:
         """Per kind (dots, spots, rim pixels, corners): which rows are real, not padding."""
@@ -95,7 +124,7 @@ def pack(obs: Observations, use_views: bool = True, use_direct: bool = True) -> 
             keys.append((vi, b))
         return index[(vi, b)]
 
-    dp, dpts, dpx, sp, sl, spx, rim = [], [], [], [], [], [], []
+    dp, dpts, dpx, sp, sl, spx, rim, dsrc, ssrc = [], [], [], [], [], [], [], [], []
     for vi, v in enumerate(obs.views if use_views else []):
         for b, (px, seen) in v.boards.items():
             if not seen.any():
@@ -104,12 +133,14 @@ def pack(obs: Observations, use_views: bool = True, use_direct: bool = True) -> 
             dp.extend([k] * int(seen.sum()))
             dpts.append(obs.boards[b][seen])
             dpx.append(px[seen])
-        for s in v.spots:
+            dsrc.extend((vi, b, int(j)) for j in np.flatnonzero(seen))
+        for j, s in enumerate(v.spots):
             if s.board is None or (vi, s.board) not in index:
                 continue  # no plane for it: no board, or a board with no dots (so no pose) in this view
             sp.append(key(vi, s.board))
             sl.append(s.laser)
             spx.append(s.pixel)
+            ssrc.append((vi, j))
         rim.append(np.asarray(v.rim, float).reshape(-1, 2))
     cp, cpts, cpx, ckeys = [], [], [], []
     for ci, cv in enumerate(obs.calibration_views if use_direct else []):
@@ -139,6 +170,8 @@ def pack(obs: Observations, use_views: bool = True, use_direct: bool = True) -> 
         np.array([len(dp), len(sp), sum(len(r) for r in rim), len(cp)], dtype=np.int64),
         tuple(keys),
         tuple(ckeys),
+        tuple(dsrc),
+        tuple(ssrc),
     )
 
 

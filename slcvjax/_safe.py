@@ -9,6 +9,7 @@ lets invalid geometry be reported through a mask instead of a NaN.
 """
 
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 _TINY = 1e-300
@@ -73,3 +74,13 @@ def solve2x2(a: Float[Array, "2 2"], b: Float[Array, "2"]) -> Float[Array, "2"]:
     x0 = a[1, 1] * b[0] - a[0, 1] * b[1]
     x1 = a[0, 0] * b[1] - a[1, 0] * b[0]
     return jnp.stack([safe_div(x0, det), safe_div(x1, det)])
+
+
+def std_of_variance(var, scale=None) -> np.ndarray:
+    """Standard deviations of variances from a covariance (host arrays): NaN for a variance
+    that is negative beyond round-off (``1e-9`` of ``scale``, by default the largest
+    magnitude among ``var``), where the covariance is not positive and the data do not
+    determine the quantity; a report writes that as undetermined, never as 0."""
+    var = np.asarray(var, dtype=float)
+    tol = 1e-9 * (float(np.max(np.abs(var), initial=0.0)) if scale is None else float(scale))
+    return np.where(var >= -tol, np.sqrt(np.maximum(var, 0.0)), np.nan)

@@ -10,7 +10,9 @@
    rays about their mean origin, then Gauss-Newton on the true rays' point-to-ray
    distances (divided by range, so the error is an angle).
 4. :func:`fit_lasers` -- each spot's reflected ray meets its board's plane at a 3D
-   point; a least-squares 3D line per laser.
+   point; a 3D line per laser by consensus over its spots, then least squares; spots
+   that lie near another laser's line instead of their own are given that laser, spots
+   near none are left out.
 """
 
 import contextlib
@@ -382,57 +384,141 @@ def board_poses(
 # ----------------------------------------------------------------------------- 4. lasers
 
 
-def fit_lasers(camera: Camera, mirror: ConeMirror, pk: Packed, poses: list[Pose], n_lasers: int):
-    """One 3D line per laser through its spots' points on their boards' planes.
+RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))  # median of |r| / sigma for 2D Gaussian r
+CONSENSUS_PX = 10.0  # a spot within this of a candidate line counts for it in the consensus
+REPAIR_SIGMAS = 5.0  # a spot further than this many noise sigmas from its own line is repaired
+MIN_REPAIR_PX = 1.0  # ... but never for less than this (a noise estimate can be tiny)
 
-    Raises :class:`CalibrationError` naming a laser whose points cannot fix a line
-    (fewer than 2 points, or all within 1 mm of each other).
+
+@dataclass
+class LaserFit:
+    """:func:`fit_lasers`' result: the lines, the stage's report and what became of each spot.
+
+    ``labels`` (S,): the laser each spot is given (its own, another laser's, or -1: left
+    out); ``residual`` (S, L): each spot's distance from each laser's fitted line in px
+    (first order, see :func:`spot_line_residuals`); ``threshold`` (px): the distance past
+    which a spot does not belong to a line.
     """
-    rays = map_padded(_back_many, camera, mirror, rows=pk.spot_pixels)
-    org, dirs, ok = np.asarray(rays.point), np.asarray(rays.direction), np.asarray(rays.valid)
-    laser_of = np.asarray(pk.spot_laser)
-    pose_of = np.asarray(pk.spot_pose)
-    normals = np.array([np.asarray(p.R)[:, 2] for p in poses]).reshape(-1, 3)
-    origins = np.array([np.asarray(p.t) for p in poses]).reshape(-1, 3)
-    pts: list[list[np.ndarray]] = [[] for _ in range(n_lasers)]
-    for i in range(len(laser_of)):
-        if not ok[i]:
-            continue
-        n, t = normals[pose_of[i]], origins[pose_of[i]]
-        denom = n @ dirs[i]
-        if abs(denom) < 1e-9:
-            continue
-        lam = n @ (t - org[i]) / denom
-        if lam > 0:  # the board must lie ahead of the mirror along the reflected ray
-            pts[laser_of[i]].append(org[i] + lam * dirs[i])
-    points, directions, spreads = [], [], []
-    for laser, p in enumerate(pts):
-        p = np.array(p).reshape(-1, 3)
-        spread = np.linalg.svd(p - p.mean(axis=0), compute_uv=False)[0] / np.sqrt(len(p)) if len(p) >= 2 else 0.0
-        if len(p) < 2 or spread < 0.5:
-            raise CalibrationError(
-                f"laser {laser}: {len(p)} spot point(s) spread over {2 * spread:.2g} mm cannot fix a line "
-                "(need spots on at least 2 planes at different distances)"
-            )
-        centre = p.mean(axis=0)
-        d = np.linalg.svd(p - centre)[2][0]
-        if d @ centre < 0:
-            d = -d
-        points.append(centre)
-        directions.append(d)
-        spreads.append(spread)
-    lasers = Lasers.create(np.array(points), np.array(directions)).canonical()
-    resid = []
-    for laser, p in enumerate(pts):
-        p = np.array(p)
-        v = p - points[laser]
-        resid.extend(np.linalg.norm(v - np.outer(v @ directions[laser], directions[laser]), axis=1))
-    return lasers, StageReport(
-        "lasers",
-        float(np.sqrt(np.mean(np.square(resid)))),
-        "mm (point-to-line)",
-        [f"{n_lasers} lasers from {sum(len(p) for p in pts)} spots"],
+
+    lasers: Lasers
+    report: StageReport
+    labels: np.ndarray
+    residual: np.ndarray
+    threshold: float
+
+
+def spot_line_residuals(org, dirs, metric, normals, origins, points, directions) -> np.ndarray:
+    """(S, L) px: each spot's distance from where each line ``(points, directions)`` meets
+    the spot's board plane (``normals``, ``origins``, per spot), seen from the spot's mirror
+    point ``org`` and mapped to pixels by its ray's ``metric`` (2x3, direction change to
+    pixels, to first order); inf where the line misses the plane or the point is behind."""
+    den = normals @ directions.T  # (S, L)
+    lam = np.sum(normals[:, None, :] * (origins[:, None, :] - points[None]), axis=2) / np.where(
+        np.abs(den) < 1e-12, np.nan, den
     )
+    q = points[None] + lam[..., None] * directions[None]  # (S, L, 3)
+    v = q - org[:, None, :]
+    dist = np.linalg.norm(v, axis=2)
+    dq = v / np.where(dist > 0, dist, np.nan)[..., None]
+    r = np.linalg.norm(np.einsum("sij,slj->sli", metric, dq - dirs[:, None, :]), axis=2)
+    ahead = np.sum(dq * dirs[:, None, :], axis=2) > 0.0
+    return np.where(np.isfinite(r) & ahead, r, np.inf)
+
+
+def _line_through(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    centre = p.mean(axis=0)
+    d = np.linalg.svd(p - centre)[2][0]
+    return centre, (-d if d @ centre < 0 else d)
+
+
+def fit_lasers(
+    camera: Camera, mirror: ConeMirror, pk: Packed, poses: list[Pose], n_lasers: int, repair: bool = True
+) -> LaserFit:
+    """One 3D line per laser through its spots' points on their boards' planes, robust to
+    wrong labels and gross outliers.
+
+    Each spot's reflected ray meets its board's plane at a point.  Per laser, every pair of
+    its points proposes a line, and the one that most of its spots lie near (within
+    :data:`CONSENSUS_PX`, the truncated quadratic cost of MSAC) wins; a least-squares line
+    through those spots follows.  Then every spot is measured against every laser's line
+    (:func:`spot_line_residuals`): one further than ``REPAIR_SIGMAS`` noise sigmas (the
+    sigma from the median distance of the spots from their own lines) from its own line is
+    given the one other line it lies near, or left out where none or more than one is near;
+    the lines are fitted again to the spots they keep, twice.  ``repair=False``: every spot
+    keeps its label (a plain least-squares line per laser).
+
+    Raises :class:`CalibrationError` naming a laser whose consistent points cannot fix a
+    line (fewer than 2 points, or all within 1 mm of each other).
+    """
+    rays, metric = map_padded(_rays_with_pixel_metric, camera, mirror, rows=pk.spot_pixels)
+    org, dirs, ok = np.asarray(rays.point), np.asarray(rays.direction), np.asarray(rays.valid)
+    metric = np.asarray(metric)
+    own = np.asarray(pk.spot_laser)[: org.shape[0]]
+    pose_of = np.asarray(pk.spot_pose)[: org.shape[0]]
+    normals = np.array([np.asarray(p.R)[:, 2] for p in poses]).reshape(-1, 3)[pose_of]
+    origins = np.array([np.asarray(p.t) for p in poses]).reshape(-1, 3)[pose_of]
+    den = np.sum(normals * dirs, axis=1)
+    lam = np.sum(normals * (origins - org), axis=1) / np.where(np.abs(den) < 1e-9, np.nan, den)
+    # the board must lie ahead of the mirror along the reflected ray
+    usable = ok & np.isfinite(lam) & (lam > 0)
+    pts = org + np.where(usable, lam, 0.0)[:, None] * dirs
+
+    def residuals(points, directions):
+        return spot_line_residuals(org, dirs, metric, normals, origins, points, directions)
+
+    def fit(labels, consensus: bool):
+        points, directions = np.zeros((n_lasers, 3)), np.zeros((n_lasers, 3))
+        for laser in range(n_lasers):
+            idx = np.flatnonzero(usable & (labels == laser))
+            p = pts[idx]
+            spread = np.linalg.svd(p - p.mean(axis=0), compute_uv=False)[0] / np.sqrt(len(p)) if len(p) >= 2 else 0.0
+            if len(p) < 2 or spread < 0.5:
+                raise CalibrationError(
+                    f"laser {laser}: {len(p)} consistent spot point(s) spread over {2 * spread:.2g} mm cannot fix "
+                    "a line (need spots on at least 2 planes at different distances)"
+                )
+            if consensus and len(p) > 2:
+                a, b = np.triu_indices(len(p), 1)
+                far = np.linalg.norm(p[a] - p[b], axis=1) > 1.0
+                a, b = a[far], b[far]
+                cand_d = (p[b] - p[a]) / np.linalg.norm(p[b] - p[a], axis=1, keepdims=True)
+                r = residuals(p[a], cand_d)[idx]  # (own spots, candidates)
+                best = int(np.argmin(np.sum(np.minimum(r, CONSENSUS_PX) ** 2, axis=0)))
+                inl = r[:, best] < CONSENSUS_PX
+                if inl.sum() >= 2:
+                    p = p[inl]
+            points[laser], directions[laser] = _line_through(p)
+        return points, directions
+
+    labels = own.copy()
+    points, directions = fit(labels, consensus=repair)
+    threshold = np.inf
+    for _ in range(2 if repair else 0):
+        r = residuals(points, directions)
+        r_own = r[np.arange(len(own)), own]
+        finite = usable & np.isfinite(r_own)
+        sigma = float(np.median(r_own[finite])) / RAYLEIGH_MEDIAN if finite.any() else 0.0
+        threshold = max(REPAIR_SIGMAS * sigma, MIN_REPAIR_PX)
+        near = r <= threshold
+        labels = np.where(near[np.arange(len(own)), own], own, -1)
+        other = (labels < 0) & (near.sum(axis=1) == 1)
+        labels[other] = np.argmax(near[other], axis=1)
+        # a spot near no line keeps its own unless it is far from every line: with the
+        # geometry not final yet, the joint stage decides on the smaller misfits
+        keep = (labels < 0) & (near.sum(axis=1) == 0) & (r_own <= CONSENSUS_PX)
+        labels[keep] = own[keep]
+        labels[~usable] = -1
+        points, directions = fit(labels, consensus=False)
+    lasers = Lasers.create(points, directions).canonical()
+    r = residuals(np.asarray(lasers.points), np.asarray(lasers.directions))
+    kept = labels >= 0
+    resid = r[np.flatnonzero(kept), labels[kept]]
+    notes = [f"{n_lasers} lasers from {int(kept.sum())} spots"]
+    n_moved, n_out = int(np.sum(kept & (labels != own))), int(np.sum(usable & ~kept))
+    if n_moved or n_out:
+        notes.append(f"{n_moved} spot(s) given another laser, {n_out} left out (near no line, or near two)")
+    report = StageReport("lasers", float(np.sqrt(np.mean(np.square(resid)))) if resid.size else 0.0, "px", notes)
+    return LaserFit(lasers, report, labels, r, float(threshold))
 
 
 # ----------------------------------------------------------------------------- the whole staged pipeline
@@ -478,8 +564,8 @@ def staged(obs: Observations, camera: Camera | None = None, pk: Packed | None = 
         obs, n_set = assign_spot_boards(obs, camera, mirror, pk, poses)
         pk = pack(obs)
         rep_p.notes.append(f"{n_set} of {n_open} spots without a board put on the first board plane their ray meets")
-    lasers, rep_l = fit_lasers(camera, mirror, pk, poses, obs.n_lasers)
-    return Staged(camera, mirror, lasers, poses, chess, reports + [rep_m, rep_p, rep_l], pk)
+    fit = fit_lasers(camera, mirror, pk, poses, obs.n_lasers)
+    return Staged(camera, mirror, fit.lasers, poses, chess, reports + [rep_m, rep_p, fit.report], pk)
 
 
 def assign_spot_boards(

@@ -31,6 +31,7 @@ from ._calibrate import calibrate_many, cramer_rao, laser_errors, resolve_batch
 from ._io import write_json_atomic, write_text_atomic
 from ._lasers import Lasers
 from ._rig import Rig
+from ._safe import std_of_variance
 from ._simulate import make_scene, simulate
 
 SWEEP_FORMAT = "slcv-sweep/1"
@@ -59,7 +60,7 @@ def laser_component_std(rig: Rig, cov_glob: np.ndarray, x_ref: np.ndarray) -> np
     for i in range(rig.lasers.n):
         sl = slice(14 + 4 * i, 18 + 4 * i)
         j = np.asarray(jax.jacfwd(comps)(jnp.zeros(4), i))
-        out[i] = np.sqrt(np.maximum(np.diag(j @ np.asarray(cov_glob)[sl, sl] @ j.T), 0.0))
+        out[i] = std_of_variance(np.diag(j @ np.asarray(cov_glob)[sl, sl] @ j.T))
     return out
 
 

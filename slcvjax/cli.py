@@ -156,8 +156,8 @@ def _cmd_demo(args) -> int:
     print("laser  error (mm, deg)    reported std (mm, deg)   bound std (mm, deg)   staged error (mm, deg)")
     for i in range(len(pos)):
         print(
-            f"{i:5d}  {pos[i]:6.3f} {np.degrees(ang[i]):6.3f}     {unc[i]['position_std_mm']:6.3f} "
-            f"{unc[i]['direction_std_deg']:6.3f}          {bound['position_std_mm'][i]:6.3f} "
+            f"{i:5d}  {pos[i]:6.3f} {np.degrees(ang[i]):6.3f}     {_fmt(unc[i]['position_std_mm']):>6s} "
+            f"{_fmt(unc[i]['direction_std_deg']):>6s}          {bound['position_std_mm'][i]:6.3f} "
             f"{np.degrees(bound['direction_std_rad'][i]):6.3f}       {pos_s[i]:7.3f} {np.degrees(ang_s[i]):6.3f}"
         )
     rms = lambda x: float(np.sqrt(np.mean(np.square(x))))  # noqa: E731
@@ -220,19 +220,30 @@ def print_report(cal, name: str = "") -> None:
 
     listed = "; ".join(_outlier(o) for o in out[:10]) + (" ..." if len(out) > 10 else "")
     print(f"outliers   {len(out)}" + (f": {listed}" if out else ""))
+    fixed = res.get("repairs", [])
+
+    def _repair(o):
+        what = f"{o['kind']} {o['view']} {o['board'] or ''} #{o['index']}"
+        if o["action"] == "relabelled":
+            return f"{what} laser {o['laser']} -> {o['new_laser']}"
+        return f"{what} left out ({_fmt(o['residual_px'], 1)} px)"
+
+    if fixed:
+        listed = "; ".join(_repair(o) for o in fixed[:10]) + (" ..." if len(fixed) > 10 else "")
+        print(f"repaired   {len(fixed)}: {listed}")
     if res.get("rim_outliers"):
         print(f"rim        {res['rim_outliers']} rim pixel(s) more than 5 sigma (the rim's own) off the rim")
     if res["invalid"]:
         print(f"invalid    {res['invalid']} observation(s) fall outside the model (off the mirror or the sensor)")
     cs = unc["camera_std"]
-    print(f"camera std fx {cs['fx']:.3f} fy {cs['fy']:.3f} cx {cs['cx']:.3f} cy {cs['cy']:.3f} px")
+    print(f"camera std fx {_fmt(cs['fx'])} fy {_fmt(cs['fy'])} cx {_fmt(cs['cx'])} cy {_fmt(cs['cy'])} px")
     ms = unc["mirror_std"]
-    apex, tilt = np.round(ms["apex_mm"], 4).tolist(), np.round(ms["axis_tilt_deg"], 4).tolist()
-    print(f"mirror std apex {apex} mm  axis {tilt} deg")
+    apex, tilt = (", ".join(_fmt(v, 4) for v in ms[k]) for k in ("apex_mm", "axis_tilt_deg"))
+    print(f"mirror std apex [{apex}] mm  axis [{tilt}] deg")
     for i, las in enumerate(unc["lasers"]):
         print(
-            f"laser {i:2d}   std {las['position_std_mm']:.3f} mm at {las['working_range_mm']:.0f} mm, "
-            f"direction {las['direction_std_deg']:.3f} deg"
+            f"laser {i:2d}   std {_fmt(las['position_std_mm'])} mm at {las['working_range_mm']:.0f} mm, "
+            f"direction {_fmt(las['direction_std_deg'])} deg" + (f"  ({las['status']})" if "status" in las else "")
         )
 
 
@@ -353,6 +364,9 @@ def _print_points(names, views, circles) -> None:
         line = f"{name:>10s}  {len(vp.lasers):3d} points"
         if flagged:
             line += f" ({flagged} nearly parallel)"
+        for i in np.flatnonzero(vp.off_line):
+            other = f", on laser {vp.fits_laser[i]}'s" if vp.fits_laser[i] >= 0 else ""
+            line += f"; spot {vp.spot_index[i]} off laser {vp.lasers[i]}'s line{other} (left out)"
         if vp.missing:
             line += f", {len(vp.missing)} spot(s) without a point"
         c = circles[k] if circles else None

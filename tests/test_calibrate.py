@@ -246,9 +246,13 @@ def test_outliers_are_flagged_and_do_not_spoil_the_fit(scene):
     px[j] += np.array([25.0, -20.0])
     res = calibrate(obs)
     cal = to_calibration(res, obs)
-    outl = cal.extra["residuals"]["outliers"]
-    assert any(o["kind"] == "dot" and o["view"] == obs.views[2].name and o["board"] == "wall3" for o in outl)
-    assert len(outl) <= 3
+    # the moved dot is left out (and named), the good ones are kept
+    fixed = cal.extra["residuals"]["repairs"]
+    moved = [
+        o for o in fixed if (o["kind"], o["view"], o["board"], o["index"]) == ("dot", obs.views[2].name, "wall3", j)
+    ]
+    assert len(moved) == 1 and moved[0]["action"] == "left out" and moved[0]["residual_px"] > 20.0
+    assert len(fixed) + len(cal.extra["residuals"]["outliers"]) <= 3
     # the robust fit lands where the clean data's fit does (within a fraction of the clean error)
     pos, ang = laser_errors(res.rig, truth.rig, x_ref)
     pos0, ang0 = laser_errors(clean.rig, truth.rig, x_ref)
