@@ -40,10 +40,14 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ._mirror import back_project
+from ._persist import PersistentJit
+from ._problem import map_padded, map_rows
 from ._rig import Rig
-from ._safe import safe_arccos, safe_div, safe_norm
+from ._safe import safe_arccos, safe_div, safe_norm, std_of_variance
 
 PARALLEL_FACTOR = 5.0  # a ray-line angle below this many ray angular stds is "nearly parallel"
+GAP_SIGMAS = 5.0  # a ray passing farther than this many stds from its laser's line is "off the line"
+GAP_FLOOR_MM = 0.01  # ... and never for less than this (the std is 0 with exact pixels and rig)
 
 
 class SpotPoints(NamedTuple):
@@ -63,7 +67,12 @@ def triangulate_spot(rig: Rig, laser: Int[Array, ""], uv: Float[Array, "2"]) -> 
     point along the reflected ray.  Values and gradients stay finite everywhere.
     """
     ray = back_project(rig.camera, rig.mirror, uv)
-    p, d = rig.lasers.points[laser], rig.lasers.directions[laser]
+    return _nearest_on_line(ray, rig.lasers.points[laser], rig.lasers.directions[laser])[0]
+
+
+def _nearest_on_line(ray, p, d) -> tuple[SpotPoints, Float[Array, ""], Float[Array, ""]]:
+    """The point of the line ``(p, d)`` nearest the reflected ``ray`` (see :func:`triangulate_spot`),
+    its distance along the ray from the mirror point and along the line from ``p`` (mm)."""
     r = ray.direction
     w = p - ray.point
     b = jnp.dot(d, r)
@@ -74,7 +83,22 @@ def triangulate_spot(rig: Rig, laser: Int[Array, ""], uv: Float[Array, "2"]) -> 
     gap = safe_norm(xyz - (ray.point + t * r))
     angle = safe_arccos(jnp.abs(b))
     valid = ray.valid & (det > 1e-12) & (t > 0.0)
-    return SpotPoints(xyz, gap, angle, valid)
+    return SpotPoints(xyz, gap, angle, valid), t, s
+
+
+def _gaps_to_every_laser(rig: Rig, uv: Float[Array, "n 2"]) -> tuple[Array, Array, Array, Array]:
+    """(n, L) per spot and laser: the ray-line distance (mm), the distances along the ray and
+    along the line (mm), whether the nearest point is valid."""
+
+    def one(px):
+        ray = back_project(rig.camera, rig.mirror, px)
+        sp, t, s = jax.vmap(lambda p, d: _nearest_on_line(ray, p, d))(rig.lasers.points, rig.lasers.directions)
+        return sp.gap, t, jnp.abs(s), sp.valid
+
+    return jax.vmap(one)(uv)
+
+
+_gaps_to_every_laser_jit = PersistentJit(map_rows(_gaps_to_every_laser), "gaps_to_every_laser")
 
 
 def _triangulate(rig: Rig, lasers, uv) -> SpotPoints:
@@ -118,6 +142,11 @@ class ViewPoints:
         ray_std: (n,) angular std of the reflected ray from the pixel noise (rad).
         parallel: (n,) the ray and the line are nearly parallel given the pixel noise and
             the laser's direction uncertainty (see the module's notes).
+        off_line: (n,) the ray passes farther from the laser's line than ``GAP_SIGMAS`` times
+            the gap's first-order std: the spot is not this laser's (a wrong label, a stray
+            reflection); its point is not to be used.
+        fits_laser: (n,) for a point off its line, the one other laser whose line its ray
+            meets within the same bound, else -1.
         missing: spots that gave no point: ``(spot_index, laser, reason)``.
     """
 
@@ -129,12 +158,14 @@ class ViewPoints:
     angle: np.ndarray
     ray_std: np.ndarray
     parallel: np.ndarray
+    off_line: np.ndarray
+    fits_laser: np.ndarray
     missing: list[tuple[int, int, str]] = field(default_factory=list)
 
     @property
     def std(self) -> np.ndarray:
-        """(n, 3) standard deviation of each coordinate (mm)."""
-        return np.sqrt(np.maximum(np.diag(self.cov), 0.0)).reshape(-1, 3)
+        """(n, 3) standard deviation of each coordinate (mm); NaN where the covariance is not positive."""
+        return std_of_variance(np.diag(self.cov)).reshape(-1, 3)
 
 
 def measure_spots(
@@ -174,14 +205,25 @@ def measure_spots(
     else:
         xyz, gap, angle, valid = np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros(0, bool)
         j_px, j_rig, ray_rate = np.zeros((0, 3, 2)), np.zeros((0, 3, rig.tangent_dim)), np.zeros(0)
-    # the lasers' direction std (rad) from the calibration: their tilt block (e1, e2)
+    # the lasers' offset (mm) and direction (rad) std from the calibration: their (e1, e2) blocks
     n_las = rig.lasers.n
-    dir_std = np.zeros(n_las)
+    off_std, dir_std = np.zeros(n_las), np.zeros(n_las)
     if rig_cov is not None:
         base = rig.tangent_dim - 4 * n_las
         for k in range(n_las):
-            i = base + 4 * k + 2
-            dir_std[k] = np.sqrt(max(rig_cov[i, i] + rig_cov[i + 1, i + 1], 0.0))
+            i = base + 4 * k
+            off_std[k] = std_of_variance(rig_cov[i, i] + rig_cov[i + 1, i + 1])
+            dir_std[k] = std_of_variance(rig_cov[i + 2, i + 2] + rig_cov[i + 3, i + 3])
+    # every spot's ray against every laser's line: is it off its own, and on which other?
+    gaps, along, reach, near_ok = (np.zeros((0, n_las)),) * 3 + (np.zeros((0, n_las), bool),)
+    if lasers.size:
+        gaps, along, reach, near_ok = map_padded(_gaps_to_every_laser_jit, rig, rows=pixels)
+    gap_std = np.hypot(along * pixel_sigma * ray_rate[:, None], np.hypot(off_std, dir_std * reach))
+    on_line = near_ok & (gaps <= np.maximum(GAP_SIGMAS * gap_std, GAP_FLOOR_MM))
+    own = on_line[np.arange(lasers.size), lasers] if lasers.size else np.zeros(0, bool)
+    others = on_line.copy()
+    others[np.arange(lasers.size), lasers] = False
+    fits = np.where(~own & (others.sum(axis=1) == 1), np.argmax(others, axis=1), -1)
     out = []
     for v in range(n_views):
         idx = np.flatnonzero(view_of == v)  # spots of view v, in their order
@@ -209,6 +251,8 @@ def measure_spots(
                 angle=angle[good],
                 ray_std=pixel_sigma * ray_rate[good],
                 parallel=angle[good] < PARALLEL_FACTOR * np.hypot(pixel_sigma * ray_rate[good], dir_std[lasers[good]]),
+                off_line=~own[good],
+                fits_laser=fits[good],
                 missing=missing,
             )
         )

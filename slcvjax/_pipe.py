@@ -148,18 +148,18 @@ def measure_observations(
 
 
 def view_circle(vp: ViewPoints, axis=(0.0, 0.0, 1.0), name: str = "") -> Circle:
-    """The circle through a view's points, leaving out those nearly parallel to their rays.
+    """The circle through a view's points, leaving out those nearly parallel to their rays
+    and those off their laser's line (never used: a wrong label or a stray spot).
 
-    When fewer than 3 points remain, all the view's points are used (each weighted by
-    its radial variance) and ``nearly_parallel_used`` says how many flagged points
-    entered the fit.  Raises ``ValueError`` naming the view when it has fewer than 3
-    points in all.
+    When fewer than 3 points remain, the nearly parallel ones are used too (each weighted
+    by its radial variance) and ``nearly_parallel_used`` says how many entered the fit.
+    Raises ``ValueError`` naming the view when it has fewer than 3 points on their lines.
     """
-    use = np.flatnonzero(~vp.parallel)
+    use = np.flatnonzero(~vp.parallel & ~vp.off_line)
     if use.size < 3:
-        use = np.arange(len(vp.lasers))
+        use = np.flatnonzero(~vp.off_line)
     if use.size < 3:
-        raise ValueError(f"view {name}: {use.size} points, a circle needs at least 3")
+        raise ValueError(f"view {name}: {use.size} points on their lasers' lines, a circle needs at least 3")
     sel = (3 * use[:, None] + np.arange(3)).ravel()
     circle = fit_circle_3d(vp.xyz[use], vp.cov[np.ix_(sel, sel)], axis=axis)
     circle.nearly_parallel_used = int(np.sum(vp.parallel[use]))
@@ -195,7 +195,7 @@ def pipe_experiment(
             circle = None
         true_xyz = truth[i, vp.lasers]
         poses.append({"points": vp, "truth": true_xyz, "error": vp.xyz - true_xyz, "circle": circle})
-    used = [~p["points"].parallel for p in poses]
+    used = [~p["points"].parallel & ~p["points"].off_line for p in poses]
     errs = np.concatenate([p["error"][u] for p, u in zip(poses, used, strict=True)]) if poses else np.zeros((0, 3))
     stds = np.concatenate([p["points"].std[u] for p, u in zip(poses, used, strict=True)]) if poses else np.zeros((0, 3))
     circles = [p["circle"] for p in poses if p["circle"] is not None]
@@ -216,6 +216,7 @@ def pipe_experiment(
             "poses": len(poses),
             "points": int(sum(len(p["points"].lasers) for p in poses)),
             "nearly_parallel": int(sum(np.sum(p["points"].parallel) for p in poses)),
+            "off_line": int(sum(np.sum(p["points"].off_line) for p in poses)),
             "median_ray_line_angle_deg": stat(
                 np.median, np.degrees(np.concatenate([p["points"].angle for p in poses])) if poses else []
             ),
@@ -291,7 +292,9 @@ def points_document(
                 "angle_deg": float(np.degrees(vp.angle[i])),
                 "gap_mm": float(vp.gap[i]),
                 "nearly_parallel": bool(vp.parallel[i]),
+                "off_line": bool(vp.off_line[i]),
             }
+            | ({"fits_laser": int(vp.fits_laser[i])} if vp.off_line[i] and vp.fits_laser[i] >= 0 else {})
             for i in range(len(vp.lasers))
         ]
         view = {

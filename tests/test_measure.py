@@ -10,7 +10,7 @@ import pytest
 from slcvjax import Lasers, Rig, cli
 from slcvjax._io import Calibration, write_calibration, write_observations
 from slcvjax._measure import fit_circle, fit_circle_3d, plane_basis, triangulate_spot, triangulate_spots
-from slcvjax._pipe import measure_observations, pipe_experiment, pipe_scene, simulate_pipe
+from slcvjax._pipe import measure_observations, pipe_experiment, pipe_scene, simulate_pipe, view_circle
 from slcvjax._simulate import paper_rig
 
 
@@ -206,3 +206,25 @@ def test_pipe_command_writes_points_and_plots(tmp_path, capsys):
     assert "mean diameter" in text and "150.042" in text
     for name in ["pipe_observations.json", "points.json", "pipe_points.png", "pipe_circles.png", "pipe_errors.png"]:
         assert (out / name).stat().st_size > 0
+
+
+def test_a_spot_with_a_wrong_laser_label_is_flagged_not_fitted():
+    rig = paper_rig(6)
+    scene = pipe_scene(rig, 140.0, n_poses=6, seed=4)
+    obs, _ = simulate_pipe(scene, noise=0.3, seed=2)
+    wrong = {}
+    for v, j in [(0, 1), (2, 3), (4, 0)]:
+        s = obs.views[v].spots[j]
+        wrong[(v, j)] = s.laser
+        s.laser = (s.laser + 1) % rig.lasers.n
+    views = measure_observations(rig, obs, pixel_sigma=0.3)
+    for v, vp in enumerate(views):
+        for k, j in enumerate(vp.spot_index):
+            if (v, j) in wrong:
+                assert vp.off_line[k] and vp.fits_laser[k] == wrong[(v, j)]
+            else:
+                assert not vp.off_line[k]
+        circle = view_circle(vp, scene.axes[v])
+        assert circle.residuals.size == int(np.sum(~vp.off_line & ~vp.parallel))
+        # the wrong spot's point is not in the fit: the circle is the pipe's, within its std
+        assert abs(circle.diameter - 140.0) < 3.0 * circle.diameter_std
