@@ -1,19 +1,28 @@
-"""Robustness of the calibration to wrong spot labels: laser error against the bound, and the flags.
+"""Robustness of the calibration to wrong labels and gross outliers: laser error against the bound, and the flags.
 
-Run: ``python benchmarks/robustness.py [--seeds 3] [--shares 0,0.05,0.1,0.2] [--noise 0.3] [--out FILE]``.
+Run: ``python benchmarks/robustness.py [--seeds 3] [--shares 0,0.05,0.1,0.2] [--gross 0.05,0.1]
+[--rows 0.25] [--noise 0.3] [--out FILE]``.
 
 Scenes: the paper preset (10 lasers, 16 views) and an 8-laser rig at 12 views.  For each seed a
-scene is simulated at ``--noise`` px and a share of its laser spots is given the label of the
-laser next to it in azimuth (what a detector does when two beams' spots lie close); the pixels
-stay true.  The corrupted observations are calibrated (``calibrate``) and compared with:
+scene is simulated at ``--noise`` px and corrupted in one of three ways:
+
+* ``labels``: a share of its laser spots is given the label of the laser next to it in azimuth
+  (what a detector does when two beams' spots lie close); the pixels stay true;
+* ``gross``: a share of its dots and of its spots is moved 5-50 px in a random direction (a
+  blob taken for a dot, a reflection taken for a spot);
+* ``rows``: in a share of its views, one row of one board's dots is labelled as the row next
+  to it (each of those dots carries the pixel of its neighbour one row up, which keeps its own).
+
+The corrupted observations are calibrated (``calibrate``) and compared with:
 
 * the truth, per laser, over the bound of the clean scene (``cramer_rao``): position and
   direction error at the working point over the bound's standard deviation, RMS over the
   lasers and the worst laser;
 * the calibration's own claim: the worst laser's error over its reported standard deviation
-  (a confident wrong answer is a large ratio);
-* the observations it flags (the report's outliers: residual above 5 sigma), against the spots
-  that were relabelled: precision and recall.
+  (a confident wrong answer is a large ratio; an undetermined laser is counted apart);
+* the observations it flags, against the corrupted ones: those it relabelled or left out
+  (``CalibrationResult.repairs``) and the report's outliers (residual above 5 sigma), each
+  named by view, kind and index: precision and recall.
 
 Goals (issue 17): 5 % wrong labels -> error <= 1.2x the bound, 10 % -> <= 1.5x, 20 % -> <= 2x or a
 refusal naming the lasers; flag precision and recall >= 0.95.  Writes JSON with the machine.
@@ -28,16 +37,16 @@ from pathlib import Path
 import numpy as np
 from bench_forward import machine
 
-from slcvjax._calibrate import _obs_table, calibrate, cramer_rao, laser_errors, laser_std, laser_working_points
+from slcvjax._calibrate import calibrate, cramer_rao, laser_errors, laser_std, laser_working_points, report
 from slcvjax._simulate import make_scene, simulate
+from slcvjax._staged import CalibrationError
 
 RIGS = {"paper_10x16": (10, 16), "lasers8_views12": (8, 12)}
 
 
 def relabel(obs, share: float, n_lasers: int, rng) -> tuple[object, set]:
     """``obs`` with ``share`` of its spots labelled as the laser next in azimuth (the preset's
-    lasers go round the ring in index order); the pixels of
-    the relabelled spots (as tuples), to find them again after packing."""
+    lasers go round the ring in index order), and the keys (:func:`key`) of those spots."""
     spots = [(v, j) for v, view in enumerate(obs.views) for j in range(len(view.spots))]
     k = int(round(share * len(spots)))
     picked = rng.choice(len(spots), size=k, replace=False) if k else []
@@ -46,40 +55,108 @@ def relabel(obs, share: float, n_lasers: int, rng) -> tuple[object, set]:
         v, j = spots[i]
         s = obs.views[v].spots[j]
         s.laser = (s.laser + 1) % n_lasers
-        wrong.add(tuple(np.round(s.pixel, 9)))
+        wrong.add(("spot", obs.views[v].name, None, j))
     return obs, wrong
 
 
-def one(n_lasers: int, n_views: int, share: float, seed: int, noise: float) -> dict:
+def gross(obs, share: float, rng) -> tuple[object, set]:
+    """``obs`` with ``share`` of its seen dots and of its spots moved 5-50 px in a random direction."""
+    wrong = set()
+    dots = [
+        (v, b, j)
+        for v, view in enumerate(obs.views)
+        for b, (_, seen) in view.boards.items()
+        for j in np.flatnonzero(seen)
+    ]
+    spots = [(v, j) for v, view in enumerate(obs.views) for j in range(len(view.spots))]
+
+    def shift():
+        a = rng.uniform(0, 2 * np.pi)
+        return rng.uniform(5, 50) * np.array([np.cos(a), np.sin(a)])
+
+    for i in rng.choice(len(dots), size=int(round(share * len(dots))), replace=False):
+        v, b, j = dots[i]
+        obs.views[v].boards[b][0][j] += shift()
+        wrong.add(("dot", obs.views[v].name, b, int(j)))
+    for i in rng.choice(len(spots), size=int(round(share * len(spots))), replace=False):
+        v, j = spots[i]
+        obs.views[v].spots[j].pixel = obs.views[v].spots[j].pixel + shift()
+        wrong.add(("spot", obs.views[v].name, None, j))
+    return obs, wrong
+
+
+def shift_rows(obs, share: float, rng) -> tuple[object, set]:
+    """``obs`` with, in ``share`` of its views, one row of its best-seen board labelled one row
+    off: each dot of the row whose neighbour one row up is seen takes that neighbour's pixel."""
+    wrong = set()
+    n = int(round(share * len(obs.views)))
+    for v in rng.choice(len(obs.views), size=n, replace=False):
+        view = obs.views[v]
+        b = max(view.boards, key=lambda name: int(view.boards[name][1].sum()))
+        px, seen = view.boards[b]
+        pts = obs.boards[b]
+        ys = np.unique(np.round(pts[:, 1], 6))
+        cols = np.round(pts[:, 0], 6)
+        pairs_by_row = []
+        for r in range(len(ys) - 1):
+            here = np.flatnonzero(seen & (np.round(pts[:, 1], 6) == ys[r]))
+            up = {cols[k]: k for k in np.flatnonzero(seen & (np.round(pts[:, 1], 6) == ys[r + 1]))}
+            pairs = [(j, up[cols[j]]) for j in here if cols[j] in up]
+            if len(pairs) >= 3:
+                pairs_by_row.append(pairs)
+        if not pairs_by_row:
+            continue
+        for j, k in pairs_by_row[rng.integers(len(pairs_by_row))]:
+            px[j] = px[k]
+            wrong.add(("dot", view.name, b, int(j)))
+    return obs, wrong
+
+
+def key(item: dict) -> tuple:
+    """A flagged observation's identity: kind, view, board (dots only), index."""
+    return (item["kind"], item["view"], item["board"] if item["kind"] == "dot" else None, item["index"])
+
+
+def one(n_lasers: int, n_views: int, mode: str, share: float, seed: int, noise: float) -> dict:
     scene = make_scene("paper", n_lasers=n_lasers, n_views=n_views)
     clean, truth = simulate(scene, noise=noise, seed=seed)
     bound = cramer_rao(truth, clean, noise)
-    obs, wrong = relabel(copy.deepcopy(clean), share, n_lasers, np.random.default_rng(1000 + seed))
+    rng = np.random.default_rng(1000 + seed)
+    obs = copy.deepcopy(clean)
+    if mode == "labels":
+        obs, wrong = relabel(obs, share, n_lasers, rng)
+    elif mode == "gross":
+        obs, wrong = gross(obs, share, rng)
+    else:
+        obs, wrong = shift_rows(obs, share, rng)
+    base = {"mode": mode, "share": share, "seed": seed, "corrupted": len(wrong)}
     t0 = time.perf_counter()
-    res = calibrate(obs)
+    try:
+        res = calibrate(obs)
+    except CalibrationError as e:
+        return base | {"refused": str(e), "seconds": time.perf_counter() - t0}
     seconds = time.perf_counter() - t0
     pos, ang = laser_errors(res.rig, truth.rig, bound["x_ref"])
     p_ratio, a_ratio = pos / bound["position_std_mm"], ang / bound["direction_std_rad"]
     x_ref = laser_working_points(res.rig, res.params.poses, res.packed)
     sd_p, sd_a = laser_std(res.rig, np.asarray(res.cov.glob), x_ref)
-    norm, kind, ok, *_ = _obs_table(res)
-    flagged_rows = np.flatnonzero(ok & (kind == 1) & (norm > 5.0 * float(res.cov.sigma)))
-    n_d = res.packed.dot_pose.shape[0]
-    px = np.asarray(res.packed.spot_pixels)
-    flagged = {tuple(np.round(px[i - n_d], 9)) for i in flagged_rows}
+    determined = np.isfinite(sd_p) & np.isfinite(sd_a)
+    rep = report(res, obs)["residuals"]
+    flagged = {key(o) for o in rep["outliers"] + rep["repairs"]}
     hit = len(flagged & wrong)
-    return {
-        "share": share,
-        "seed": seed,
-        "wrong_spots": len(wrong),
-        "spots": int(px.shape[0]),
+    claim = np.maximum(pos / sd_p, ang / sd_a)[determined]
+    return base | {
         "seconds": seconds,
         "final_pass": res.passes[-1].result,
         "position_over_bound_rms": float(np.sqrt(np.mean(p_ratio**2))),
         "direction_over_bound_rms": float(np.sqrt(np.mean(a_ratio**2))),
         "worst_laser_over_bound": float(max(p_ratio.max(), a_ratio.max())),
-        "worst_laser_over_reported_std": float(max((pos / sd_p).max(), (ang / sd_a).max())),
-        "flagged_spots": len(flagged),
+        "worst_laser_over_reported_std": float(claim.max()) if claim.size else None,
+        "undetermined_lasers": np.flatnonzero(~determined).tolist(),
+        "flagged": len(flagged),
+        "relabelled": sum(o["action"] == "relabelled" for o in rep["repairs"]),
+        "left_out": sum(o["action"] == "left out" for o in rep["repairs"]),
+        "boards_left_out": len({(o["view"], o["board"]) for o in rep["repairs"] if o.get("whole_board")}),
         "flag_precision": hit / len(flagged) if flagged else None,
         "flag_recall": hit / len(wrong) if wrong else None,
     }
@@ -88,55 +165,79 @@ def one(n_lasers: int, n_views: int, share: float, seed: int, noise: float) -> d
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=3)
-    ap.add_argument("--shares", default="0,0.05,0.1,0.2")
+    ap.add_argument("--shares", default="0,0.05,0.1,0.2", help="shares of spots with a wrong label")
+    ap.add_argument("--gross", default="0.05,0.1", help="shares of dots and spots moved 5-50 px")
+    ap.add_argument("--rows", default="0.25", help="shares of views with a row of dots labelled one row off")
     ap.add_argument("--noise", type=float, default=0.3)
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
-    shares = [float(s) for s in args.shares.split(",")]
+
+    def shares(text):
+        return [float(s) for s in text.split(",") if s]
+
+    cases = [("labels", s) for s in shares(args.shares)] + [("gross", s) for s in shares(args.gross)]
+    cases += [("rows", s) for s in shares(args.rows)]
     rows = []
     for rig, (n_lasers, n_views) in RIGS.items():
-        for share in shares:
+        for mode, share in cases:
             for seed in range(args.seeds):
-                r = one(n_lasers, n_views, share, seed, args.noise) | {"rig": rig}
+                r = one(n_lasers, n_views, mode, share, seed, args.noise) | {"rig": rig}
                 rows.append(r)
+                if "refused" in r:
+                    print(f"{rig:16s} {mode:6s} {share:4.0%} seed {seed}: refused: {r['refused']}", flush=True)
+                    continue
                 print(
-                    f"{rig:16s} {share:4.0%} seed {seed}: error/bound rms {r['position_over_bound_rms']:6.2f} "
+                    f"{rig:16s} {mode:6s} {share:4.0%} seed {seed}: err/bound {r['position_over_bound_rms']:6.2f} "
                     f"{r['direction_over_bound_rms']:6.2f}, worst laser {r['worst_laser_over_bound']:6.1f}x bound, "
-                    f"{r['worst_laser_over_reported_std']:6.1f}x its std; flagged {r['flagged_spots']:3d} of "
-                    f"{r['wrong_spots']:3d} wrong (precision {r['flag_precision']}, recall {r['flag_recall']})",
+                    f"{r['worst_laser_over_reported_std']:6.1f}x its std; flagged {r['flagged']:3d}, "
+                    f"{r['corrupted']:3d} corrupted (precision {r['flag_precision']}, recall {r['flag_recall']})",
                     flush=True,
                 )
     summary = []
     for rig in RIGS:
-        for share in shares:
-            rs = [r for r in rows if r["rig"] == rig and r["share"] == share]
+        for mode, share in cases:
+            rs = [r for r in rows if r["rig"] == rig and r["mode"] == mode and r["share"] == share]
+            ok = [r for r in rs if "refused" not in r]
 
-            def rms(key, rs=rs):
-                return float(np.sqrt(np.mean([r[key] ** 2 for r in rs])))
+            def rms(k, ok=ok):
+                return float(np.sqrt(np.mean([r[k] ** 2 for r in ok]))) if ok else None
 
-            def mean(key, rs=rs):
-                vals = [r[key] for r in rs if r[key] is not None]
+            def mean(k, ok=ok):
+                vals = [r[k] for r in ok if r[k] is not None]
                 return float(np.mean(vals)) if vals else None
 
+            claims = [r["worst_laser_over_reported_std"] for r in ok if r["worst_laser_over_reported_std"] is not None]
             summary.append(
                 {
                     "rig": rig,
+                    "mode": mode,
                     "share": share,
+                    "runs": len(rs),
+                    "refused": len(rs) - len(ok),
                     "position_over_bound": rms("position_over_bound_rms"),
                     "direction_over_bound": rms("direction_over_bound_rms"),
-                    "worst_laser_over_bound": max(r["worst_laser_over_bound"] for r in rs),
-                    "worst_laser_over_reported_std": max(r["worst_laser_over_reported_std"] for r in rs),
+                    "worst_laser_over_bound": max((r["worst_laser_over_bound"] for r in ok), default=None),
+                    "worst_laser_over_reported_std": max(claims, default=None),
+                    "undetermined_lasers": sum(len(r["undetermined_lasers"]) for r in ok),
+                    "flagged_mean": mean("flagged"),
+                    "boards_left_out": sum(r["boards_left_out"] for r in ok),
                     "flag_precision": mean("flag_precision"),
                     "flag_recall": mean("flag_recall"),
                 }
             )
-    print("rig              share  pos/bound dir/bound  worst/bound  worst/std  precision recall")
+
+    def f(x, nd=2):
+        return "-" if x is None else f"{x:.{nd}f}"
+
+    print(
+        "rig              kind   share  pos/bound dir/bound  worst/bound  worst/std  flagged precision recall refused"
+    )
     for s in summary:
-        prec = "-" if s["flag_precision"] is None else f"{s['flag_precision']:.2f}"
-        rec = "-" if s["flag_recall"] is None else f"{s['flag_recall']:.2f}"
         print(
-            f"{s['rig']:16s} {s['share']:5.0%} {s['position_over_bound']:9.2f} {s['direction_over_bound']:9.2f} "
-            f"{s['worst_laser_over_bound']:11.1f} {s['worst_laser_over_reported_std']:10.1f} {prec:>9s} {rec:>6s}"
+            f"{s['rig']:16s} {s['mode']:6s} {s['share']:5.0%} {f(s['position_over_bound']):>9s} "
+            f"{f(s['direction_over_bound']):>9s} {f(s['worst_laser_over_bound'], 1):>11s} "
+            f"{f(s['worst_laser_over_reported_std'], 1):>10s} {f(s['flagged_mean'], 1):>7s} "
+            f"{f(s['flag_precision']):>9s} {f(s['flag_recall']):>6s} {s['boards_left_out']:10d} {s['refused']:7d}"
         )
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
