@@ -41,11 +41,7 @@ def main() -> None:
         st = res.staged
         ps, as_ = laser_errors(Rig(st.camera, st.mirror, st.lasers), truth.rig, bound["x_ref"])
         rep = report(res, obs)["residuals"]
-        ok = (
-            res.passes[-1].result.startswith("converged")
-            and rep["invalid"] == 0
-            and abs(rep["sigma_px"] / args.noise - 1) < 0.25
-        )
+        ok = res.passes[-1].converged and rep["invalid"] == 0 and abs(rep["sigma_px"] / args.noise - 1) < 0.25
         joint_p.append(p), joint_a.append(a), staged_p.append(ps), staged_a.append(as_)
         rows.append(
             {

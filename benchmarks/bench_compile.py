@@ -92,7 +92,7 @@ def part(name: str, files: list[Path]) -> dict:
             "buckets": list(lay.cap),
             "seconds": wall,
             "compile_seconds": {k: totals[k] - before[k] for k in totals},
-            "converged": res.passes[-1].result.startswith("converged"),
+            "converged": res.passes[-1].converged,
         }
 
     out: dict = {"import_seconds": t_import}

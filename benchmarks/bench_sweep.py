@@ -69,7 +69,7 @@ def whole(n: int) -> dict:
             "compile_s": first - (run / n if mode == "loop" else run),
             "run_s": run,
             "calibrations_per_s": n / run,
-            "converged": sum(r.passes[-1].result.startswith("converged") for r in res),
+            "converged": sum(r.passes[-1].converged for r in res),
         }
         print(f"whole calibrations, {mode}: {n / run:.2f} per s ({run:.1f} s for {n})", flush=True)
     out["vmap_over_loop"] = out["vmap"]["calibrations_per_s"] / out["loop"]["calibrations_per_s"]

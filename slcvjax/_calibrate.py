@@ -1,16 +1,22 @@
 """The whole calibration: staged start, progressive joint refinement, uncertainty, report.
 
 :func:`calibrate` runs the staged pipeline (:mod:`._staged`), then the joint
-Levenberg-Marquardt (:mod:`._lm`) in three passes:
+Levenberg-Marquardt (:mod:`._lm`) in passes:
 
 A. camera, mirror, board and direct-view poses from dots, rim and corners (lasers
    frozen, spots weighted 0): the staged mirror tilt is weakly observable from the rim
-   alone and the boards fix it;
-B. the lasers refitted on the refined geometry, then everything jointly with a Huber
-   loss at 3 sigma (sigma estimated robustly from the residuals);
-C. the same with sigma re-estimated at B's solution (the final pass).
+   alone and the boards fix it (A2 again where a board's flip changed);
+B. the lasers refitted on the refined geometry by consensus (spots that lie on another
+   laser's line are given that laser, see :func:`._staged.fit_lasers`), then everything
+   jointly with a Huber loss at 3 sigma (sigma estimated robustly from the residuals);
+   every board then tries its other starts (flipped twin, carried pose);
+C. the same with sigma re-estimated at B's solution (the final pass); where a dot or
+   spot lies beyond 5 sigma, the gross outliers are found under the Cauchy loss, left
+   out, and C runs again (C3, :func:`_leave_out`); where a board still fits badly, its
+   other starts again and C again (C2).
 
-It returns the joint result with its covariance, and the staged result beside it.
+Everything changed in the input is listed in :attr:`CalibrationResult.repairs`.  It
+returns the joint result with its covariance, and the staged result beside it.
 """
 
 import functools
@@ -27,6 +33,7 @@ from ._camera import Camera
 from ._io import Calibration, Observations
 from ._lasers import Lasers, line_plane_intersection
 from ._lm import (
+    CONVERGED,
     KIND_NAMES,
     RESULT_NAMES,
     Covariance,
@@ -45,7 +52,7 @@ from ._lm import (
 from ._persist import PersistentJit
 from ._pose import Pose
 from ._problem import Layout, Packed, pack, stack_poses, unstack_poses
-from ._rig import Rig, project_board_points, project_rim, project_spots
+from ._rig import Rig, laser_columns, project_board_points, project_rim, project_spots
 from ._safe import std_of_variance
 from ._staged import RAYLEIGH_MEDIAN, CalibrationError, Staged, _flipped, board_poses, fit_lasers, staged
 
@@ -143,12 +150,20 @@ def robust_sigma(params: Params, pk: Packed) -> float:
 
 @dataclass
 class JointPass:
+    """One LM pass: its name, steps, result (``._lm.RESULT_NAMES`` and what followed it), costs,
+    loss scale, and its result code (``code``, ``._lm.CONVERGED`` ...)."""
+
     name: str
     steps: int
     result: str
     cost0: float
     cost: float
     scale: float
+    code: int
+
+    @property
+    def converged(self) -> bool:
+        return self.code == CONVERGED
 
 
 @dataclass
@@ -247,7 +262,11 @@ def calibrate_many(
     ``progress`` a bar counts the calibrations (in ``vmap`` they finish together, and the
     bar names the pass under way).
     """
-    kw = dict(camera=None, freeze=(), loss="huber", loss_scale=None, max_steps=200) | kwargs
+    kw = dict(camera=None, freeze=(), loss="huber", loss_scale=None, max_steps=200)
+    unknown = sorted(set(kwargs) - set(kw))
+    if unknown:
+        raise TypeError(f"calibrate_many: unexpected keyword(s) {', '.join(unknown)} (calibrate takes {', '.join(kw)})")
+    kw |= kwargs
     args = (kw["camera"], kw["freeze"], kw["loss"], kw["loss_scale"], kw["max_steps"])
     batch = resolve_batch(batch)
     bar = None
@@ -403,6 +422,7 @@ def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, s
                     float(res.initial_cost),
                     float(res.cost),
                     float(tr.scale),
+                    int(res.result),
                 )
             )
             tr.params = unpad_params(tr.layout, res.params)
@@ -525,7 +545,8 @@ def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, s
     return out
 
 
-OUTLIER_SIGMAS = 5.0  # a dot or spot with a residual beyond this many sigmas of its kind is left out
+OUTLIER_SIGMAS = 5.0  # a dot or spot with a residual beyond this many sigmas of its kind is left out,
+MIN_OUTLIER_PX = 1.0  # ... and beyond this (a gross error, not a detector's sub-pixel bias)
 MIN_BOARD_DOTS = 4  # a board pose with fewer dots than this left is left out whole
 
 
@@ -564,17 +585,19 @@ def _relabel_spots(tr: "_Trial", fit) -> None:
 
 
 def _outliers(tr: "_Trial", pk: Packed) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Which dots and spots of ``pk`` lie beyond :data:`OUTLIER_SIGMAS` sigmas of their kind at
-    the trial's solution (each kind's sigma from the median residual of the observations the
-    trial keeps), with every observation's residual norm and kind and the sigmas."""
+    """Which dots and spots of ``pk`` lie beyond :data:`OUTLIER_SIGMAS` sigmas of their kind (and
+    beyond :data:`MIN_OUTLIER_PX`) at the trial's solution (each kind's sigma from the median
+    residual of the observations the trial keeps), with every observation's residual norm and
+    kind and the thresholds (px) per kind."""
     sig = kind_sigmas(tr.params, tr.pk)
     norm, kind, ok = _per_observation(tr.params, pk)
     n_d, n_s = int(pk.counts[0]), int(pk.counts[1])
     bad = np.zeros(n_d + n_s, bool)
+    limit = np.maximum(OUTLIER_SIGMAS * sig, MIN_OUTLIER_PX)
     for k in (0, 1):
         if np.isfinite(sig[k]):
-            bad |= (ok & (kind == k) & (norm > OUTLIER_SIGMAS * sig[k]))[: n_d + n_s]
-    return bad, norm, kind, sig
+            bad |= (ok & (kind == k) & (norm > limit[k]))[: n_d + n_s]
+    return bad, norm, kind, limit
 
 
 def _leave_out(tr: "_Trial", starts, rerun, rounds: int = 3) -> None:
@@ -613,7 +636,7 @@ def _leave_out(tr: "_Trial", starts, rerun, rounds: int = 3) -> None:
     if not out.any():  # none under the Cauchy loss: back to the calibration's own
         rerun(None)
         return
-    _, norm, kind, sig = _outliers(tr, full)
+    _, norm, kind, limit = _outliers(tr, full)
     for i in np.flatnonzero(out):
         if i < n_d:
             v, b, j = full.dot_src[i] if full.dot_src else (-1, "", -1)
@@ -625,8 +648,8 @@ def _leave_out(tr: "_Trial", starts, rerun, rounds: int = 3) -> None:
         if whole[i]:
             why = f"its board's pose in this view is not determined: fewer than {MIN_BOARD_DOTS} of its dots agree"
         else:
-            why = f"residual {norm[i]:.3g} px beyond {OUTLIER_SIGMAS:g} sigma of the {KIND_NAMES[k]}s "
-            why += f"({OUTLIER_SIGMAS * sig[k]:.3g} px)"
+            why = f"residual {norm[i]:.3g} px beyond {limit[k]:.3g} px ({OUTLIER_SIGMAS:g} sigma of the "
+            why += f"{KIND_NAMES[k]}s, at least {MIN_OUTLIER_PX:g} px)"
         tr.repairs.append(
             item
             | {"action": "left out", "residual_px": None if whole[i] else float(norm[i]), "reason": why}
@@ -760,10 +783,8 @@ def laser_working_points(rig: Rig, poses: Pose, pk: Packed) -> np.ndarray:
 
 
 def _laser_offset(lasers: Lasers, i: int, x_ref, delta4):
-    las = Lasers(lasers.points[i][None], lasers.directions[i][None]).retract(delta4[None])
-    p, d = las.points[0], las.directions[0]
-    foot = p + jnp.dot(x_ref - p, d) * d
-    return foot - x_ref
+    """Laser ``i`` moved by ``delta4``: its foot at ``x_ref`` less ``x_ref`` (mm)."""
+    return lasers.at_working_point(i, x_ref, delta4)[0] - x_ref
 
 
 def laser_std(rig: Rig, cov_glob: np.ndarray, x_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -773,7 +794,7 @@ def laser_std(rig: Rig, cov_glob: np.ndarray, x_ref: np.ndarray) -> tuple[np.nda
     pos, ang = np.zeros(n), np.zeros(n)
     cov_glob = np.asarray(cov_glob)
     for i in range(n):
-        sl = slice(14 + 4 * i, 18 + 4 * i)
+        sl = laser_columns(i)
         c = cov_glob[sl, sl]
         j = np.asarray(jax.jacfwd(lambda d, i=i: _laser_offset(rig.lasers, i, jnp.asarray(x_ref[i]), d))(jnp.zeros(4)))
         # a block that is not positive: the data do not determine this laser (NaN, not 0)

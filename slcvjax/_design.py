@@ -37,12 +37,12 @@ import numpy as np
 from . import _lm
 from ._calibrate import _laser_offset
 from ._lasers import line_plane_intersection
-from ._lm import N_CM, N_LAS, Params
+from ._lm import N_LAS, Params
 from ._mirror import project_through_mirror
 from ._newton import exact_second_order
 from ._pose import Pose, so3_exp
 from ._problem import Packed
-from ._rig import Rig, project_rim
+from ._rig import Rig, laser_columns, project_rim
 from ._simulate import PAPER_HALF_WIDTH, PAPER_ROTATION_DEG, PAPER_TRANSLATION_MM, Scene, box_walls
 
 N_RIM = 90  # rim edge pixels per view, as the simulator writes
@@ -201,7 +201,8 @@ def _predict(views, rig, T_bw, chess, pk, sigma, n_v):
     cov = sigma**2 * _lm.schur_inverse(ne)[0]
 
     def laser(i):
-        c = jax.lax.dynamic_slice(cov, (N_CM + N_LAS * i, N_CM + N_LAS * i), (N_LAS, N_LAS))
+        s = laser_columns(i).start  # a traced index: the block by a dynamic slice
+        c = jax.lax.dynamic_slice(cov, (s, s), (N_LAS, N_LAS))
         j = jax.jacfwd(lambda d: _laser_offset(rig.lasers, i, x_ref[i], d))(jnp.zeros(N_LAS))
         return jnp.trace(j @ c @ j.T), c[2, 2] + c[3, 3]
 
@@ -424,7 +425,7 @@ def confirm(plan: Plan, trials: int, seed: int = 0, progress: bool = False) -> d
     for t in it:
         obs, truth = simulate(scene, noise=plan.noise, seed=seed + t)
         res = calibrate(usable_observations(obs))
-        conv += res.passes[-1].result.startswith("converged")
+        conv += res.passes[-1].converged
         p, a = laser_errors(res.rig, truth.rig, _true_working_points(scene))
         pos.append(p)
         ang.append(a)

@@ -41,6 +41,7 @@ from . import _lm
 from ._lm import N_CAM, N_CM, N_LAS, Masks, Params
 from ._newton import exact_second_order
 from ._problem import Packed
+from ._rig import laser_columns
 
 N_G = N_CM + N_LAS  # the global part of an observation's local parameters (padded)
 DATA_FIELDS = ("dot_pixels", "spot_pixels", "rim_pixels", "chess_pixels", "dot_points", "chess_points")
@@ -383,11 +384,9 @@ def sensitivity(result, x_ref: np.ndarray | None = None) -> Sensitivity:
     for i in range(n_l):
 
         def comps(d4, i=i):
-            las = rig.lasers.retract(jnp.zeros((n_l, 4)).at[i].set(d4))
-            p, d = las.points[i], las.directions[i]
-            return jnp.concatenate([p + jnp.dot(jnp.asarray(x_ref[i]) - p, d) * d, d])
+            return jnp.concatenate(rig.lasers.at_working_point(i, x_ref[i], d4))
 
         j = np.asarray(jax.jacfwd(comps)(jnp.zeros(4)))  # (6, 4)
-        sl = slice(N_CM + 4 * i, N_CM + 4 * i + 4)
+        sl = laser_columns(i)
         lp[i], ld[i] = j[:3] @ xg[sl], j[3:] @ xg[sl]
     return Sensitivity(xg, kind, index, axis, lp, ld, params, steps)

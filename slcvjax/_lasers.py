@@ -41,6 +41,18 @@ class Lasers(eqx.Module):
         p, d = jax.vmap(one)(self.points, self.directions, delta)
         return Lasers(p, d)
 
+    def at_working_point(self, i, x_ref, delta4=None) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
+        """Laser ``i`` (moved by the tangent increment ``delta4``, see :meth:`retract`) at the
+        working point ``x_ref``: the foot of the perpendicular from ``x_ref`` on its line, and its
+        direction.  The one definition behind every laser's position and direction error, its
+        standard deviation and its sensitivity."""
+        p, d = self.points[i], self.directions[i]
+        if delta4 is not None:
+            moved = Lasers(p[None], d[None]).retract(jnp.asarray(delta4)[None])
+            p, d = moved.points[0], moved.directions[0]
+        x_ref = jnp.asarray(x_ref)
+        return p + jnp.dot(x_ref - p, d) * d, d
+
     def canonical(self) -> "Lasers":
         """The same lines with each point moved to the foot of the perpendicular from the origin."""
         d = self.directions

@@ -46,10 +46,10 @@ from ._lasers import Lasers, line_plane_intersection
 from ._mirror import ConeMirror, project_through_mirror
 from ._pose import Pose
 from ._problem import Layout, Packed
-from ._rig import Rig
+from ._rig import CAMERA_DOF, LASER_DOF, MIRROR_DOF, Rig
 from ._safe import safe_div, safe_norm
 
-N_CAM, N_MIR, N_LAS = 9, 5, 4
+N_CAM, N_MIR, N_LAS = CAMERA_DOF, MIRROR_DOF, LASER_DOF
 N_CM = N_CAM + N_MIR
 LOSSES = ("huber", "cauchy", "linear")
 RIM_MARGIN = 0.05  # the cone extended 5 % past its rim for residuals (see solve_mirror_point)

@@ -42,7 +42,7 @@ from jaxtyping import Array, Bool, Float, Int
 from ._mirror import back_project
 from ._persist import PersistentJit
 from ._problem import map_padded, map_rows
-from ._rig import Rig
+from ._rig import Rig, laser_columns
 from ._safe import safe_arccos, safe_div, safe_norm, std_of_variance
 
 PARALLEL_FACTOR = 5.0  # a ray-line angle below this many ray angular stds is "nearly parallel"
@@ -209,11 +209,9 @@ def measure_spots(
     n_las = rig.lasers.n
     off_std, dir_std = np.zeros(n_las), np.zeros(n_las)
     if rig_cov is not None:
-        base = rig.tangent_dim - 4 * n_las
         for k in range(n_las):
-            i = base + 4 * k
-            off_std[k] = std_of_variance(rig_cov[i, i] + rig_cov[i + 1, i + 1])
-            dir_std[k] = std_of_variance(rig_cov[i + 2, i + 2] + rig_cov[i + 3, i + 3])
+            c = np.diag(rig_cov)[laser_columns(k)]
+            off_std[k], dir_std[k] = std_of_variance(c[0] + c[1]), std_of_variance(c[2] + c[3])
     # every spot's ray against every laser's line: is it off its own, and on which other?
     gaps, along, reach, near_ok = (np.zeros((0, n_las)),) * 3 + (np.zeros((0, n_las), bool),)
     if lasers.size:

@@ -15,6 +15,14 @@ LASER_DOF = 4
 POSE_DOF = 6
 
 
+def laser_columns(i: int) -> slice:
+    """Laser ``i``'s four columns in the rig's tangent (:meth:`Rig.retract`'s order: camera,
+    mirror, then the lasers' point offset e1, e2 and direction tilt e1, e2): in the calibration's
+    covariance and in every Jacobian over the rig."""
+    start = CAMERA_DOF + MIRROR_DOF + LASER_DOF * i
+    return slice(start, start + LASER_DOF)
+
+
 class Rig(eqx.Module):
     """Everything calibrated about the sensor: camera, mirror and lasers.
 

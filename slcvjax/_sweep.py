@@ -29,8 +29,7 @@ import numpy as np
 
 from ._calibrate import calibrate_many, cramer_rao, laser_errors, resolve_batch
 from ._io import write_json_atomic, write_text_atomic
-from ._lasers import Lasers
-from ._rig import Rig
+from ._rig import Rig, laser_columns
 from ._safe import std_of_variance
 from ._simulate import make_scene, simulate
 
@@ -52,13 +51,10 @@ def laser_component_std(rig: Rig, cov_glob: np.ndarray, x_ref: np.ndarray) -> np
     out = np.zeros((rig.lasers.n, 6))
 
     def comps(delta4, i):
-        las = Lasers(rig.lasers.points[i][None], rig.lasers.directions[i][None]).retract(delta4[None])
-        p, d = las.points[0], las.directions[0]
-        foot = p + jnp.dot(x_ref[i] - p, d) * d
-        return jnp.concatenate([foot, d])
+        return jnp.concatenate(rig.lasers.at_working_point(i, x_ref[i], delta4))
 
     for i in range(rig.lasers.n):
-        sl = slice(14 + 4 * i, 18 + 4 * i)
+        sl = laser_columns(i)
         j = np.asarray(jax.jacfwd(comps)(jnp.zeros(4), i))
         out[i] = std_of_variance(np.diag(j @ np.asarray(cov_glob)[sl, sl] @ j.T))
     return out
@@ -127,7 +123,7 @@ def run_sweep(
                 "seed": sd,
                 # in lockstep (vmap) the trials share their time: the batch's mean
                 "seconds": res.timings["total_s"] if batch == "loop" else per_trial,
-                "converged": res.passes[-1].result.startswith("converged"),
+                "converged": res.passes[-1].converged,
             }
         )
     sig = np.asarray(noise)

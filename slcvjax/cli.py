@@ -223,7 +223,7 @@ def print_report(cal, name: str = "") -> None:
     fixed = res.get("repairs", [])
 
     def _repair(o):
-        what = f"{o['kind']} {o['view']} {o['board'] or ''} #{o['index']}"
+        what = " ".join(str(x) for x in (o["kind"], o["view"], o["board"]) if x) + f" #{o['index']}"
         if o["action"] == "relabelled":
             return f"{what} laser {o['laser']} -> {o['new_laser']}"
         return f"{what} left out ({_fmt(o['residual_px'], 1)} px)"
@@ -422,7 +422,9 @@ def _pipe_report(res, paper: bool = True) -> None:
     print(
         f"per-point fit error: mean {_fmt(s['fit_error_mean_mm'])} mm, max {_fmt(s['fit_error_max_mm'])} mm; "
         f"point error vs truth rms {_fmt(s['point_error_rms_mm'])} mm (reported std rms "
-        f"{_fmt(s['point_std_rms_mm'])} mm, {s['nearly_parallel']} nearly parallel points left out)"
+        f"{_fmt(s['point_std_rms_mm'])} mm, {s['nearly_parallel']} nearly parallel points left out"
+        + (f", {s['off_line']} off their laser's line" if s.get("off_line") else "")
+        + ")"
     )
     print(
         f"the reflected rays meet the laser lines at a median {_fmt(s['median_ray_line_angle_deg'], 2)} deg: "
