@@ -83,3 +83,9 @@ def test_sharded_lockstep_calibrations_equal_one_after_another():
         assert out["passes"][i] == [[p.name, p.steps] for p in ref.passes]
         np.testing.assert_allclose(out["points"][i], np.asarray(ref.rig.lasers.points), atol=1e-7)
         np.testing.assert_allclose(out["directions"][i], np.asarray(ref.rig.lasers.directions), atol=1e-10)
+
+
+def test_calibrate_many_rejects_an_unknown_keyword():
+    obs, _ = simulate(make_scene("paper", n_lasers=3, n_views=3), noise=0.3, seed=0)
+    with pytest.raises(TypeError, match="lozz"):
+        calibrate_many([obs], lozz="cauchy")

@@ -83,3 +83,32 @@ def test_any_number_of_lasers(n):
     las = sj.Lasers.create(pts, dirs)
     assert las.n == n
     assert las.retract(jnp.zeros((n, 4))).points.shape == (n, 3)
+
+
+def test_working_point_foot_and_the_tangent_columns():
+    rng = np.random.default_rng(3)
+    n = 3
+    d = rng.normal(size=(n, 3))
+    lasers = sj.Lasers.create(rng.normal(size=(n, 3)) * 20, d / np.linalg.norm(d, axis=1, keepdims=True))
+    x_ref = np.array([30.0, -40.0, 120.0])
+    foot, direction = lasers.at_working_point(1, x_ref)
+    # the foot lies on the line and x_ref - foot is perpendicular to it
+    p, u = np.asarray(lasers.points[1]), np.asarray(lasers.directions[1])
+    np.testing.assert_allclose(np.cross(np.asarray(foot) - p, u), 0.0, atol=1e-9)
+    assert abs(np.dot(x_ref - np.asarray(foot), u)) < 1e-9
+    np.testing.assert_allclose(direction, u)
+    # laser 1's tangent columns move laser 1 alone, as at_working_point's own increment does
+    from slcvjax._rig import laser_columns
+    from slcvjax._simulate import paper_rig
+
+    rig = paper_rig(n)
+    delta = np.zeros(rig.tangent_dim)
+    step = np.array([0.3, -0.2, 0.01, 0.02])
+    delta[laser_columns(1)] = step
+    moved = rig.retract(jnp.asarray(delta))
+    np.testing.assert_array_equal(np.asarray(moved.lasers.points)[[0, 2]], np.asarray(rig.lasers.points)[[0, 2]])
+    np.testing.assert_array_equal(np.asarray(moved.camera.K), np.asarray(rig.camera.K))
+    f1, d1 = moved.lasers.at_working_point(1, x_ref)
+    f2, d2 = rig.lasers.at_working_point(1, x_ref, step)
+    np.testing.assert_allclose(f1, f2, atol=1e-12)
+    np.testing.assert_allclose(d1, d2, atol=1e-15)
