@@ -19,6 +19,7 @@ Everything changed in the input is listed in :attr:`CalibrationResult.repairs`. 
 returns the joint result with its covariance, and the staged result beside it.
 """
 
+import dataclasses
 import functools
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -505,11 +506,13 @@ def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, s
         _leave_out(
             trials[i],
             lambda i=i: other_starts([i], turned_only=False, pass_loss="cauchy"),
-            lambda pass_loss, i=i: run(
-                "C3: joint (Cauchy loss, to find the outliers)" if pass_loss else "C3: joint (outliers left out)",
+            lambda pass_loss, scale, i=i: run(
+                f"C3: joint (Cauchy loss at {scale:.3g} px, to find the outliers)"
+                if pass_loss
+                else "C3: joint (outliers left out)",
                 [i],
                 False,
-                lambda tr: tr.scale,
+                lambda tr, scale=scale: scale,
                 rtol=_RTOL_FINAL,
                 pass_loss=pass_loss,
             ),
@@ -548,6 +551,7 @@ def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, s
 OUTLIER_SIGMAS = 5.0  # a dot or spot with a residual beyond this many sigmas of its kind is left out,
 MIN_OUTLIER_PX = 1.0  # ... and beyond this (a gross error, not a detector's sub-pixel bias)
 MIN_BOARD_DOTS = 4  # a board pose with fewer dots than this left is left out whole
+CAUCHY_WIDEN = 10.0  # the first outlier-finding pass's Cauchy scale, in loss scales
 
 
 def _spot_source(tr: "_Trial", i: int, pk: Packed | None = None) -> dict:
@@ -587,39 +591,51 @@ def _relabel_spots(tr: "_Trial", fit) -> None:
 def _outliers(tr: "_Trial", pk: Packed) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Which dots and spots of ``pk`` lie beyond :data:`OUTLIER_SIGMAS` sigmas of their kind (and
     beyond :data:`MIN_OUTLIER_PX`) at the trial's solution (each kind's sigma from the median
-    residual of the observations the trial keeps), with every observation's residual norm and
-    kind and the thresholds (px) per kind."""
+    residual of the observations the trial keeps, corrected for the degrees of freedom), or
+    whose prediction is not valid (off the mirror or the sensor), with every observation's
+    residual norm and kind, the thresholds (px) per kind and the validity."""
     sig = kind_sigmas(tr.params, tr.pk)
     norm, kind, ok = _per_observation(tr.params, pk)
     n_d, n_s = int(pk.counts[0]), int(pk.counts[1])
     bad = np.zeros(n_d + n_s, bool)
+    # the residuals are smaller than the noise by the parameters they fix: the dots the board
+    # poses (6 each), the spots the lasers (4 each); the median's sigma is scaled back up
+    kept_d, kept_s = int(tr.pk.counts[0]), int(tr.pk.counts[1])
+    sig = sig.copy()
+    sig[0] *= np.sqrt(2 * kept_d / max(2 * kept_d - 6 * tr.pk.n_poses, 1))
+    sig[1] *= np.sqrt(2 * kept_s / max(2 * kept_s - 4 * tr.obs.n_lasers, 1))
     limit = np.maximum(OUTLIER_SIGMAS * sig, MIN_OUTLIER_PX)
     for k in (0, 1):
         if np.isfinite(sig[k]):
             bad |= (ok & (kind == k) & (norm > limit[k]))[: n_d + n_s]
-    return bad, norm, kind, limit
+    bad |= ~ok[: n_d + n_s]  # predicted off the mirror or the sensor: out of the model's reach
+    return bad, norm, kind, limit, ok
 
 
 def _leave_out(tr: "_Trial", starts, rerun, rounds: int = 3) -> None:
     """Leave out the trial's gross outliers: the dots and spots beyond :data:`OUTLIER_SIGMAS`
     sigmas (:func:`_outliers`).  Where there are any, the final pass runs first with the
-    redescending Cauchy loss (``rerun("cauchy")``), under which a gross outlier no longer drags
+    redescending Cauchy loss (``rerun("cauchy", scale)``, first at :data:`CAUCHY_WIDEN` times the
+    loss scale, then at it), under which a gross outlier no longer drags
     its board's pose, so that the outliers found then are the wrong observations, not the good
     ones of a dragged board (and every board tries its other starts under that loss,
     ``starts()``: a board whose own dots are a third wrong is found again from its neighbours);
     those are left out and the final pass runs again with the
-    calibration's loss (``rerun(None)``); observations left out that fit the new solution come
+    calibration's loss (``rerun(None, scale)``); observations left out that fit the new solution come
     back, until the set left out stays the same (at most ``rounds`` times).  A board left with
     fewer than :data:`MIN_BOARD_DOTS` dots is left out whole (its pose is not determined).
     What stays left out is recorded in ``tr.repairs``."""
-    full = tr.pk
+    full, scale = tr.pk, tr.scale
     n_d = int(full.counts[0])
     out = np.zeros(n_d + int(full.counts[1]), bool)
     if not _outliers(tr, full)[0].any():
         return
-    rerun("cauchy")
+    # graduated: at a wide scale first, where the good observations of a dragged board still
+    # pull (at the final scale they may already count as outliers: a local minimum)
+    rerun("cauchy", CAUCHY_WIDEN * scale)
+    rerun("cauchy", scale)
     starts()
-    rerun("cauchy")
+    rerun("cauchy", scale)
     for _ in range(rounds):
         bad = _outliers(tr, full)[0]
         # a board with too few dots left: every dot and spot of it out
@@ -632,11 +648,29 @@ def _leave_out(tr: "_Trial", starts, rerun, rounds: int = 3) -> None:
             break
         out = bad
         tr.use(full.select(~out[:n_d], ~out[n_d:]))
-        rerun(None)
+        rerun(None, scale)
     if not out.any():  # none under the Cauchy loss: back to the calibration's own
-        rerun(None)
+        rerun(None, scale)
         return
-    _, norm, kind, limit = _outliers(tr, full)
+    # a dot left out that lies on another grid position of its board (one not seen in that
+    # view) is given that position and comes back
+    _, norm, kind, limit, valid = _outliers(tr, full)
+    moved = _regrid(tr, full, out & ~whole, limit[0])
+    if moved:
+        old_full = full
+        full = _with_dot_labels(full, tr.obs, moved)
+        out[list(moved)] = False
+        tr.use(full.select(~out[:n_d], ~out[n_d:]))
+        rerun(None, scale)
+        norm_new = _per_observation(tr.params, full)[0]
+        for i, k in moved.items():
+            v, b, j = old_full.dot_src[i]
+            tr.repairs.append(
+                {"kind": "dot", "view": tr.obs.views[v].name, "index": j, "board": b, "action": "relabelled"}
+                | {"new_index": k, "residual_px": float(norm[i]) if valid[i] else None}
+                | {"new_residual_px": float(norm_new[i])}
+                | {"reason": f"lies on grid position {k} of its board (not seen otherwise), not on its own"}
+            )
     for i in np.flatnonzero(out):
         if i < n_d:
             v, b, j = full.dot_src[i] if full.dot_src else (-1, "", -1)
@@ -647,14 +681,70 @@ def _leave_out(tr: "_Trial", starts, rerun, rounds: int = 3) -> None:
         k = int(kind[i])
         if whole[i]:
             why = f"its board's pose in this view is not determined: fewer than {MIN_BOARD_DOTS} of its dots agree"
+        elif not valid[i]:
+            why = "its prediction falls off the mirror or the sensor (out of the model's reach)"
         else:
             why = f"residual {norm[i]:.3g} px beyond {limit[k]:.3g} px ({OUTLIER_SIGMAS:g} sigma of the "
             why += f"{KIND_NAMES[k]}s, at least {MIN_OUTLIER_PX:g} px)"
         tr.repairs.append(
             item
-            | {"action": "left out", "residual_px": None if whole[i] else float(norm[i]), "reason": why}
+            | {"action": "left out", "residual_px": float(norm[i]) if valid[i] and not whole[i] else None}
+            | {"reason": why}
             | ({"whole_board": True} if whole[i] else {})
         )
+
+
+def _regrid(tr: "_Trial", full: Packed, candidates: np.ndarray, limit: float) -> dict[int, int]:
+    """For the dot rows of ``full`` where ``candidates`` holds: the one grid position of its
+    board, not seen in its view, whose projection at the trial's solution lies within ``limit``
+    px of its pixel (row -> position index); rows with none or several are not listed."""
+    n_d = int(full.counts[0])
+    rows = [i for i in np.flatnonzero(candidates[:n_d])]
+    if not rows or not full.dot_src:
+        return {}
+    seen: dict[tuple[int, str], set[int]] = {}
+    for i, (v, b, j) in enumerate(full.dot_src):
+        if not candidates[i]:
+            seen.setdefault((v, b), set()).add(j)
+    cand_row, cand_k, pose, pts, pix = [], [], [], [], []
+    for i in rows:
+        v, b, j = full.dot_src[i]
+        grid = tr.obs.boards[b]
+        for k in range(grid.shape[0]):
+            if k != j and k not in seen.get((v, b), ()):
+                cand_row.append(i), cand_k.append(k), pose.append(full.dot_pose[i])
+                pts.append(grid[k]), pix.append(full.dot_pixels[i])
+    if not cand_row or len(cand_row) > 4 * n_d:
+        return {}
+    c = np.asarray(full.counts).copy()
+    c[0] = len(cand_row)
+    probe = dataclasses.replace(
+        tr.pk,
+        dot_pose=np.asarray(pose, np.int64),
+        dot_points=np.asarray(pts, float),
+        dot_pixels=np.asarray(pix, float),
+        counts=c,
+        dot_src=(),
+    )
+    norm, _, ok = _per_observation(tr.params, probe)
+    near = ok[: len(cand_row)] & (norm[: len(cand_row)] <= limit)
+    out = {}
+    for i in rows:
+        hits = [cand_k[m] for m in np.flatnonzero(near) if cand_row[m] == i]
+        if len(hits) == 1:
+            out[i] = hits[0]
+    # two dots given one position: neither
+    taken = [(full.dot_src[i][0], full.dot_src[i][1], k) for i, k in out.items()]
+    return {i: k for (i, k), t in zip(out.items(), taken, strict=True) if taken.count(t) == 1}
+
+
+def _with_dot_labels(pk: Packed, obs: Observations, moved: dict[int, int]) -> Packed:
+    """``pk`` with dot row ``i`` labelled as grid position ``moved[i]`` of its board."""
+    pts, src = np.array(pk.dot_points, float), list(pk.dot_src)
+    for i, k in moved.items():
+        v, b, _ = src[i]
+        pts[i], src[i] = obs.boards[b][k], (v, b, k)
+    return dataclasses.replace(pk, dot_points=pts, dot_src=tuple(src))
 
 
 def _job(tr: "_Trial", params: Params, masks: Masks, kind_weight, rtol: float) -> tuple:

@@ -54,7 +54,7 @@ N_CM = N_CAM + N_MIR
 LOSSES = ("huber", "cauchy", "linear")
 RIM_MARGIN = 0.05  # the cone extended 5 % past its rim for residuals (see solve_mirror_point)
 APEX_MARGIN = 0.05  # and 5 % of its height past the apex
-INVALID_PENALTY = 0.5 * 30.0**2  # the cost of a 30 px residual, per invalid observation
+INVALID_PX = 30.0  # an invalid observation costs what a residual of this many px costs under the loss
 
 # result codes
 CONVERGED, MAX_STEPS, STALLED = 0, 1, 2
@@ -468,9 +468,13 @@ def robust_observations(t: ObservationTable, loss: str, scale, kw) -> tuple[Arra
     rho, w = robust_cost(sq, loss, scale)
     w = jnp.where(robust, w, 1.0) * k
     rho = jnp.where(robust, rho, 0.5 * sq)
-    # an invalid prediction (off the mirror, off the sensor) costs a fixed penalty, so that a
-    # step cannot lower the cost by pushing observations out of the model's reach
-    rho = jnp.where(t.valid, rho, jnp.where(t.present, INVALID_PENALTY * k, 0.0))
+    # an invalid prediction (off the mirror, off the sensor) costs what a residual of
+    # INVALID_PX costs under the same loss: a step cannot lower the cost by pushing a fitting
+    # observation out of the model's reach, while a gross outlier beyond that is free to go
+    # (a fixed plain penalty kept it at the edge of validity, its board's pose dragged with it)
+    sq_invalid = k * INVALID_PX**2
+    penalty = jnp.where(robust, robust_cost(sq_invalid, loss, scale)[0], 0.5 * sq_invalid)
+    rho = jnp.where(t.valid, rho, jnp.where(t.present, penalty, 0.0))
     return jnp.where(t.present, w, 0.0), rho
 
 

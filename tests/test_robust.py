@@ -149,3 +149,35 @@ def test_negative_variances_are_undetermined_not_zero(clean_result, noisy):
     assert doc[1]["position_std_mm"] is None and doc[1]["status"].startswith("undetermined")
     assert all("status" not in d for i, d in enumerate(doc) if i != 1)
     json.dumps(doc)
+
+
+def test_a_dot_labelled_as_an_unseen_grid_position_is_given_its_own(noisy):
+    obs, _ = noisy
+    bad = copy.deepcopy(obs)
+    # a view and board with a seen dot next to (within 1.5 spacings of) a grid position not seen
+    for view in bad.views:
+        for b, (px, seen) in view.boards.items():
+            pts = bad.boards[b]
+            if seen.sum() < 8:
+                continue
+            spacing = np.min(np.linalg.norm(pts[1:] - pts[0], axis=1))
+            pairs = [
+                (j, k)
+                for j in np.flatnonzero(seen)
+                for k in np.flatnonzero(~seen)
+                if np.linalg.norm(pts[j] - pts[k]) < 1.5 * spacing
+            ]
+            if pairs:
+                j, k = pairs[0]
+                px[k], seen[k], seen[j] = px[j], True, False
+                break
+        else:
+            continue
+        break
+    res = calibrate(bad)
+    moved = [o for o in res.repairs if o["kind"] == "dot" and o["action"] == "relabelled"]
+    assert [(o["view"], o["board"], o["index"], o["new_index"]) for o in moved] == [(view.name, b, int(k), int(j))]
+    # its own position is off the mirror there (not seen) or far from its pixel
+    assert moved[0]["new_residual_px"] < 1.0
+    assert moved[0]["residual_px"] is None or moved[0]["residual_px"] > 1.0
+    assert len(res.repairs) == 1
