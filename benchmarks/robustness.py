@@ -1,17 +1,19 @@
 """Robustness of the calibration to wrong labels and gross outliers: laser error against the bound, and the flags.
 
 Run: ``python benchmarks/robustness.py [--seeds 3] [--shares 0,0.05,0.1,0.2] [--gross 0.05,0.1]
-[--rows 0.25] [--noise 0.3] [--out FILE]``.
+[--rows 0.25] [--regrid 0.25] [--noise 0.3] [--out FILE]``.
 
 Scenes: the paper preset (10 lasers, 16 views) and an 8-laser rig at 12 views.  For each seed a
-scene is simulated at ``--noise`` px and corrupted in one of three ways:
+scene is simulated at ``--noise`` px and corrupted in one of four ways:
 
 * ``labels``: a share of its laser spots is given the label of the laser next to it in azimuth
   (what a detector does when two beams' spots lie close); the pixels stay true;
 * ``gross``: a share of its dots and of its spots is moved 5-50 px in a random direction (a
   blob taken for a dot, a reflection taken for a spot);
 * ``rows``: in a share of its views, one row of one board's dots is labelled as the row next
-  to it (each of those dots carries the pixel of its neighbour one row up, which keeps its own).
+  to it (each of those dots carries the pixel of its neighbour one row up, which keeps its own);
+* ``regrid``: in a share of its views, one dot next to a grid position not seen there is
+  labelled as that position (a grid one step off at its edge, for one dot).
 
 The corrupted observations are calibrated (``calibrate``) and compared with:
 
@@ -112,6 +114,33 @@ def shift_rows(obs, share: float, rng) -> tuple[object, set]:
     return obs, wrong
 
 
+def regrid(obs, share: float, rng) -> tuple[object, set]:
+    """``obs`` with, in ``share`` of the views where any board has one, one seen dot that lies
+    next to a grid position not seen there labelled as that position (a grid placed one step
+    off at its edge, for one dot)."""
+    wrong = set()
+    choices = {}
+    for v, view in enumerate(obs.views):
+        for b, (_, seen) in view.boards.items():
+            pts = obs.boards[b]
+            spacing = np.min(np.linalg.norm(pts[1:] - pts[0], axis=1))
+            pairs = [
+                (b, j, k)
+                for j in np.flatnonzero(seen)
+                for k in np.flatnonzero(~seen)
+                if seen.sum() >= 6 and np.linalg.norm(pts[j] - pts[k]) < 1.5 * spacing
+            ]
+            choices.setdefault(v, []).extend(pairs)
+    views = [v for v, c in choices.items() if c]
+    for v in rng.choice(views, size=min(len(views), int(round(share * len(obs.views)))), replace=False):
+        view = obs.views[v]
+        b, j, k = choices[v][rng.integers(len(choices[v]))]
+        px, seen = view.boards[b]
+        px[k], seen[k], seen[j] = px[j], True, False
+        wrong.add(("dot", view.name, b, int(k)))
+    return obs, wrong
+
+
 def key(item: dict) -> tuple:
     """A flagged observation's identity: kind, view, board (dots only), index."""
     return (item["kind"], item["view"], item["board"] if item["kind"] == "dot" else None, item["index"])
@@ -127,6 +156,8 @@ def one(n_lasers: int, n_views: int, mode: str, share: float, seed: int, noise: 
         obs, wrong = relabel(obs, share, n_lasers, rng)
     elif mode == "gross":
         obs, wrong = gross(obs, share, rng)
+    elif mode == "regrid":
+        obs, wrong = regrid(obs, share, rng)
     else:
         obs, wrong = shift_rows(obs, share, rng)
     base = {"mode": mode, "share": share, "seed": seed, "corrupted": len(wrong)}
@@ -168,6 +199,7 @@ def main() -> None:
     ap.add_argument("--shares", default="0,0.05,0.1,0.2", help="shares of spots with a wrong label")
     ap.add_argument("--gross", default="0.05,0.1", help="shares of dots and spots moved 5-50 px")
     ap.add_argument("--rows", default="0.25", help="shares of views with a row of dots labelled one row off")
+    ap.add_argument("--regrid", default="0.25", help="shares of views with a dot labelled as an unseen grid position")
     ap.add_argument("--noise", type=float, default=0.3)
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
@@ -176,7 +208,7 @@ def main() -> None:
         return [float(s) for s in text.split(",") if s]
 
     cases = [("labels", s) for s in shares(args.shares)] + [("gross", s) for s in shares(args.gross)]
-    cases += [("rows", s) for s in shares(args.rows)]
+    cases += [("rows", s) for s in shares(args.rows)] + [("regrid", s) for s in shares(args.regrid)]
     rows = []
     for rig, (n_lasers, n_views) in RIGS.items():
         for mode, share in cases:
