@@ -16,6 +16,7 @@ differentiates through every iteration (kept for the benchmark's baseline).
 
 import contextlib
 import functools
+import threading
 from collections.abc import Callable
 
 import jax
@@ -24,7 +25,13 @@ from jaxtyping import Array, Float, PyTree
 
 from ._safe import solve2x2
 
-_SECOND_ORDER = [False]
+# per thread: a calibration tracing in one thread (``calibrate_many(workers=2)``) must not see
+# another thread's design or implicit derivative switch the roots to their exact form
+_SECOND_ORDER = threading.local()
+
+
+def _second_order() -> bool:
+    return getattr(_SECOND_ORDER, "on", False)
 
 
 @contextlib.contextmanager
@@ -37,14 +44,15 @@ def exact_second_order():
     itself (so differentiating the rule again differentiates the root again): the
     second derivatives that the implicit derivative of a calibration's solution needs
     (:mod:`._implicit`) and the bound's gradient in experiment design.  It acts at trace
-    time: functions already compiled outside it keep their first-order form.
+    time, in the calling thread only: functions already compiled outside it keep their
+    first-order form, and other threads trace as before.
     """
-    old = _SECOND_ORDER[0]
-    _SECOND_ORDER[0] = True
+    old = _second_order()
+    _SECOND_ORDER.on = True
     try:
         yield
     finally:
-        _SECOND_ORDER[0] = old
+        _SECOND_ORDER.on = old
 
 
 def _step(f, x, theta):
@@ -86,7 +94,7 @@ def newton_implicit(
     theta_sg = jax.lax.stop_gradient(theta)
     x = jax.lax.fori_loop(0, iters, lambda _, x: _step(f, x, theta_sg), jax.lax.stop_gradient(x0))
     x = jax.lax.stop_gradient(x)
-    if _SECOND_ORDER[0]:
+    if _second_order():
         return _exact_root(f, x, theta)
     jac = jax.lax.stop_gradient(jax.jacfwd(f)(x, theta_sg))
     return x - solve2x2(jac, f(x, theta))

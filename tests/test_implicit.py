@@ -56,6 +56,37 @@ def test_second_derivatives_of_the_reflection_point_are_exact():
     assert float(jnp.max(jnp.abs(first_order - fd))) > 0.1 * scale
 
 
+def test_exact_second_order_holds_in_its_own_thread_only():
+    import threading
+
+    mir = make_scene("paper").rig.mirror
+    p = jnp.array([150.0, 41.0, 55.0])
+
+    def hessian():  # traced afresh in each call (no jit cache shared between them)
+        return np.asarray(jax.jacfwd(jax.jacrev(lambda q: solve_mirror_point(mir, q)[0]))(p))
+
+    first_order = hessian()
+    with exact_second_order():
+        exact = hessian()
+    assert np.max(np.abs(exact - first_order)) > 1e-6 * np.max(np.abs(exact))
+    inside, release, out = threading.Event(), threading.Event(), {}
+
+    def hold():
+        with exact_second_order():
+            inside.set()
+            release.wait(60)
+
+    t = threading.Thread(target=hold)
+    t.start()
+    try:
+        assert inside.wait(60)
+        out["other"] = hessian()  # this thread, while the other one is inside the context
+    finally:
+        release.set()
+        t.join()
+    np.testing.assert_array_equal(out["other"], first_order)
+
+
 def test_second_derivatives_of_undistortion_are_exact():
     cam = make_scene("paper").rig.camera
     uv = jnp.array([40.0, 30.0])
