@@ -48,6 +48,7 @@ from ._lm import (
     pad_masks,
     pad_params,
     solve,
+    table_at,
     unpad_params,
 )
 from ._persist import PersistentJit
@@ -58,6 +59,7 @@ from ._safe import std_of_variance
 from ._staged import RAYLEIGH_MEDIAN, CalibrationError, Staged, _flipped, board_poses, fit_lasers, staged
 
 _solve_jit = PersistentJit(solve, "solve")
+_table_jit = PersistentJit(table_at, "observation_table")
 
 
 def _solve(params: Params, arr: Packed, masks: Masks, loss: str, scale, max_steps: int, rtol=1e-10, kind_weight=None):
@@ -98,8 +100,9 @@ def _linearisation(params: Params, pk: Packed, masks: Masks | None = None, loss:
 
 
 def _table(params: Params, pk: Packed):
-    layout, lin = _linearisation(params, pk)
-    return layout, lin.table
+    """The padded problem's layout and its :class:`._lm.ObservationTable` at ``params``."""
+    layout = Layout.of(pk)
+    return layout, _table_jit(pad_params(layout, params), layout.pad_packed(pk))
 
 
 def _per_observation(params: Params, pk: Packed) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -741,6 +741,15 @@ def _table_arrays(params: Params, pk: Packed) -> tuple[Array, Array, Array]:
     return kind, jnp.concatenate(pk.present()), block
 
 
+def table_at(params: Params, pk: Packed) -> ObservationTable:
+    """The per-observation table at ``params`` without the normal equations (the cost's pass
+    over the real observations): what :class:`Linearisation` ``.table`` holds after a solve with
+    no step, for a fraction of its work (the rim rows normalised at ``params``, as there)."""
+    s = accumulate(params, pk, None, 0, 1.0, None, rim_norms(params.rig, pk), False)
+    kind, present, block = _table_arrays(params, pk)
+    return ObservationTable(s.sq, kind, s.valid, present, block)
+
+
 def linearise(params: Params, pk: Packed, masks: Masks, loss: str, scale, kind_weight, rim_norm=None, real_only=True):
     """:class:`Linearisation` at ``params`` and the robust cost there (``real_only``: see :func:`accumulate`)."""
     s = accumulate(params, pk, masks, loss, scale, kind_weight, rim_norm, True, real_only)
