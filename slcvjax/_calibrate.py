@@ -134,7 +134,11 @@ def kind_sigmas(params: Params, pk: Packed, min_count: int = 10) -> np.ndarray:
     Rim residuals are 1D (a distance to the rim curve), the others 2D.  NaN for a kind
     with fewer than ``min_count`` valid observations.
     """
-    norm, kind, ok = _per_observation(params, pk)
+    return _sigmas_of(*_per_observation(params, pk), min_count)
+
+
+def _sigmas_of(norm, kind, ok, min_count: int = 10) -> np.ndarray:
+    """:func:`kind_sigmas` of a per-observation table (``_per_observation``'s)."""
     out = np.full(4, np.nan)
     for k in range(4):
         sel = ok & (kind == k)
@@ -557,6 +561,14 @@ MIN_BOARD_DOTS = 4  # a board pose with fewer dots than this left is left out wh
 CAUCHY_WIDEN = 10.0  # the first outlier-finding pass's Cauchy scale, in loss scales
 
 
+def _dot_source(tr: "_Trial", i: int, pk: Packed) -> dict:
+    """Dot row ``i`` of ``pk`` as the report names it."""
+    if not pk.dot_src:
+        return {"kind": "dot", "view": None, "index": -1, "board": ""}
+    v, b, j = pk.dot_src[i]
+    return {"kind": "dot", "view": tr.obs.views[v].name, "index": j, "board": b}
+
+
 def _spot_source(tr: "_Trial", i: int, pk: Packed | None = None) -> dict:
     """Spot row ``i`` of ``pk`` (the trial's problem by default) as the report names it."""
     pk = tr.pk if pk is None else pk
@@ -591,20 +603,20 @@ def _relabel_spots(tr: "_Trial", fit) -> None:
     tr.use(tr.pk.select(np.ones(n_d, bool), fit.labels >= 0, np.maximum(fit.labels, 0)))
 
 
-def _outliers(tr: "_Trial", pk: Packed) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _outliers(tr: "_Trial", pk: Packed) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Which dots and spots of ``pk`` lie beyond :data:`OUTLIER_SIGMAS` sigmas of their kind (and
     beyond :data:`MIN_OUTLIER_PX`) at the trial's solution (each kind's sigma from the median
     residual of the observations the trial keeps, corrected for the degrees of freedom), or
     whose prediction is not valid (off the mirror or the sensor), with every observation's
     residual norm and kind, the thresholds (px) per kind and the validity."""
-    sig = kind_sigmas(tr.params, tr.pk)
     norm, kind, ok = _per_observation(tr.params, pk)
+    # the sigmas of what the trial keeps: this table where ``pk`` is that problem
+    sig = _sigmas_of(norm, kind, ok) if pk is tr.pk else kind_sigmas(tr.params, tr.pk)
     n_d, n_s = int(pk.counts[0]), int(pk.counts[1])
     bad = np.zeros(n_d + n_s, bool)
     # the residuals are smaller than the noise by the parameters they fix: the dots the board
     # poses (6 each), the spots the lasers (4 each); the median's sigma is scaled back up
     kept_d, kept_s = int(tr.pk.counts[0]), int(tr.pk.counts[1])
-    sig = sig.copy()
     sig[0] *= np.sqrt(2 * kept_d / max(2 * kept_d - 6 * tr.pk.n_poses, 1))
     sig[1] *= np.sqrt(2 * kept_s / max(2 * kept_s - 4 * tr.obs.n_lasers, 1))
     limit = np.maximum(OUTLIER_SIGMAS * sig, MIN_OUTLIER_PX)
@@ -667,17 +679,15 @@ def _leave_out(tr: "_Trial", starts, rerun, rounds: int = 3) -> None:
         rerun(None, scale)
         norm_new = _per_observation(tr.params, full)[0]
         for i, k in moved.items():
-            v, b, j = old_full.dot_src[i]
             tr.repairs.append(
-                {"kind": "dot", "view": tr.obs.views[v].name, "index": j, "board": b, "action": "relabelled"}
-                | {"new_index": k, "residual_px": float(norm[i]) if valid[i] else None}
+                _dot_source(tr, i, old_full)
+                | {"action": "relabelled", "new_index": k, "residual_px": float(norm[i]) if valid[i] else None}
                 | {"new_residual_px": float(norm_new[i])}
                 | {"reason": f"lies on grid position {k} of its board (not seen otherwise), not on its own"}
             )
     for i in np.flatnonzero(out):
         if i < n_d:
-            v, b, j = full.dot_src[i] if full.dot_src else (-1, "", -1)
-            item = {"kind": "dot", "view": tr.obs.views[v].name if v >= 0 else None, "index": j, "board": b}
+            item = _dot_source(tr, i, full)
         else:
             src = _spot_source(tr, i - n_d, full)
             item = src | {"laser": int(np.asarray(full.spot_laser)[i - n_d])}
