@@ -56,7 +56,16 @@ from ._pose import Pose
 from ._problem import Layout, Packed, pack, stack_poses, unstack_poses
 from ._rig import Rig, laser_columns, project_board_points, project_rim, project_spots
 from ._safe import std_of_variance
-from ._staged import RAYLEIGH_MEDIAN, CalibrationError, Staged, _flipped, board_poses, fit_lasers, staged
+from ._staged import (
+    CONSENSUS_PX,
+    RAYLEIGH_MEDIAN,
+    CalibrationError,
+    Staged,
+    _flipped,
+    board_poses,
+    fit_lasers,
+    staged,
+)
 
 _solve_jit = PersistentJit(solve, "solve")
 _table_jit = PersistentJit(table_at, "observation_table")
@@ -397,6 +406,9 @@ class _Trial:
         self.passes: list[JointPass] = []
         self.repairs: list[dict] = []
         self.scale = 1.0
+        # the problem before spots were set aside by their lines (:func:`_relabel_spots`), and
+        # which of its rows were: the outlier check looks at them again on the final geometry
+        self.set_aside: tuple[Packed, np.ndarray] | None = None
 
     def use(self, pk: Packed) -> None:
         """Solve the problem ``pk`` from now on (the same poses; fewer or relabelled observations)."""
@@ -503,6 +515,11 @@ def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, s
         tr.scale = robust_scale(0.05)(tr)
     if "poses" not in freeze:
         other_starts(every, turned_only=False)
+    # the spots set aside by their lines come back for C: the outlier check below judges them
+    # on the final geometry (a board pose still wrong in B made some look wrong)
+    for tr in trials:
+        if tr.set_aside is not None:
+            tr.use(tr.set_aside[0])
     # C: final pass at the re-estimated scale.  Every kind keeps weight 1: weighting each by
     # its own noise (the rim's is larger in rendered images) made the lasers worse from images
     # (benchmarks/images_vs_file.py), where the dots' errors are mostly systematic
@@ -599,8 +616,10 @@ def _relabel_spots(tr: "_Trial", fit) -> None:
         else:
             item["reason"] = f"lies on no laser's line, or on more than one (threshold {fit.threshold:.3g} px)"
         tr.repairs.append(item)
-    n_d = int(tr.pk.counts[0])
-    tr.use(tr.pk.select(np.ones(n_d, bool), fit.labels >= 0, np.maximum(fit.labels, 0)))
+    n_d, keep = int(tr.pk.counts[0]), fit.labels >= 0
+    every = tr.pk.select(np.ones(n_d, bool), np.ones(keep.size, bool), np.where(keep, fit.labels, own))
+    tr.set_aside = (every, np.concatenate([np.zeros(n_d, bool), ~keep]))
+    tr.use(every.select(np.ones(n_d, bool), keep))
 
 
 def _outliers(tr: "_Trial", pk: Packed) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -639,11 +658,17 @@ def _leave_out(tr: "_Trial", starts, rerun, rounds: int = 3) -> None:
     calibration's loss (``rerun(None, scale)``); observations left out that fit the new solution come
     back, until the set left out stays the same (at most ``rounds`` times).  A board left with
     fewer than :data:`MIN_BOARD_DOTS` dots is left out whole (its pose is not determined).
-    What stays left out is recorded in ``tr.repairs``."""
+    Spots set aside earlier by their lines (``tr.set_aside``) are part of the final pass and
+    judged with the rest: those that fit the final geometry stay (a board pose wrong when the
+    lines were fitted made them look wrong).  What stays left out is recorded in ``tr.repairs``."""
     full, scale = tr.pk, tr.scale
     n_d = int(full.counts[0])
     out = np.zeros(n_d + int(full.counts[1]), bool)
+    aside = out.copy()
+    if tr.set_aside is not None and tr.set_aside[0] is full:
+        aside = tr.set_aside[1]
     if not _outliers(tr, full)[0].any():
+        _readmit(tr, full, aside, out)
         return
     # graduated: at a wide scale first, where the good observations of a dragged board still
     # pull (at the final scale they may already count as outliers: a local minimum)
@@ -651,6 +676,7 @@ def _leave_out(tr: "_Trial", starts, rerun, rounds: int = 3) -> None:
     rerun("cauchy", scale)
     starts()
     rerun("cauchy", scale)
+    ran = False  # the final pass run again with the calibration's loss on what is kept
     for _ in range(rounds):
         bad = _outliers(tr, full)[0]
         # a board with too few dots left: every dot and spot of it out
@@ -659,24 +685,43 @@ def _leave_out(tr: "_Trial", starts, rerun, rounds: int = 3) -> None:
         weak = (kept < MIN_BOARD_DOTS) & (np.bincount(pose_d, minlength=full.n_poses) >= MIN_BOARD_DOTS)
         whole = np.concatenate([weak[pose_d], weak[pose_s]])
         bad |= whole
-        if np.array_equal(bad, out):
+        if ran and np.array_equal(bad, out):
             break
         out = bad
         tr.use(full.select(~out[:n_d], ~out[n_d:]))
         rerun(None, scale)
-    if not out.any():  # none under the Cauchy loss: back to the calibration's own
-        rerun(None, scale)
+        ran = True
+    _readmit(tr, full, aside, out)
+    if not out.any():
         return
     # a dot left out that lies on another grid position of its board (one not seen in that
-    # view) is given that position and comes back
+    # view) is given that position, a spot left out that lies on exactly one other laser's
+    # line at this geometry is given that laser, and they come back
     _, norm, kind, limit, valid = _outliers(tr, full)
     moved = _regrid(tr, full, out & ~whole, limit[0])
-    if moved:
-        old_full = full
-        full = _with_dot_labels(full, tr.obs, moved)
-        out[list(moved)] = False
+    # a spot left out is a prediction, not a fitted residual: its other laser is looked for as
+    # the consensus does (within CONSENSUS_PX, every other line far), and kept only if it fits
+    # once refitted
+    lasers = _relaser(tr, full, out & ~whole, CONSENSUS_PX)
+    if moved or lasers:
+        old_full, n_s = full, int(full.counts[1])
+        old_labels = np.asarray(full.spot_laser)[:n_s]
+        labels = old_labels.copy()
+        for i, k in lasers.items():
+            labels[i - n_d] = k
+        full = _with_dot_labels(full, tr.obs, moved).select(np.ones(n_d, bool), np.ones(n_s, bool), labels)
+        out[list(moved) + list(lasers)] = False
         tr.use(full.select(~out[:n_d], ~out[n_d:]))
         rerun(None, scale)
+        misfit = [i for i in lasers if _outliers(tr, full)[0][i]]
+        if misfit:  # given another laser but still beyond the noise: out again, with its own label
+            for i in misfit:
+                labels[i - n_d] = old_labels[i - n_d]
+                del lasers[i]
+            full = full.select(np.ones(n_d, bool), np.ones(n_s, bool), labels)
+            out[misfit] = True
+            tr.use(full.select(~out[:n_d], ~out[n_d:]))
+            rerun(None, scale)
         norm_new = _per_observation(tr.params, full)[0]
         for i, k in moved.items():
             tr.repairs.append(
@@ -685,7 +730,20 @@ def _leave_out(tr: "_Trial", starts, rerun, rounds: int = 3) -> None:
                 | {"new_residual_px": float(norm_new[i])}
                 | {"reason": f"lies on grid position {k} of its board (not seen otherwise), not on its own"}
             )
-    for i in np.flatnonzero(out):
+        for i, k in lasers.items():
+            src = _spot_source(tr, i - n_d, full)
+            same = [r["kind"] == "spot" and r["view"] == src["view"] and r["index"] == src["index"] for r in tr.repairs]
+            # its residual under its own label: now, else where the lines set it aside
+            before = [r.get("residual_px") for r, m in zip(tr.repairs, same, strict=True) if m]
+            tr.repairs = [r for r, m in zip(tr.repairs, same, strict=True) if not m]
+            tr.repairs.append(
+                src
+                | {"action": "relabelled", "laser": int(old_labels[i - n_d])}
+                | {"residual_px": float(norm[i]) if valid[i] else (before[0] if before else None)}
+                | {"new_laser": k, "new_residual_px": float(norm_new[i])}
+                | {"reason": f"lies on laser {k}'s line at the final geometry, not on its own"}
+            )
+    for i in np.flatnonzero(out & ~aside):  # those set aside and still out have their record
         if i < n_d:
             item = _dot_source(tr, i, full)
         else:
@@ -705,6 +763,50 @@ def _leave_out(tr: "_Trial", starts, rerun, rounds: int = 3) -> None:
             | {"reason": why}
             | ({"whole_board": True} if whole[i] else {})
         )
+
+
+def _readmit(tr: "_Trial", full: Packed, aside: np.ndarray, out: np.ndarray) -> None:
+    """Drop the records of the spots set aside by their lines that are no longer left out."""
+    n_d = int(full.counts[0])
+    back = {(_spot_source(tr, i - n_d, full)["view"], _spot_source(tr, i - n_d, full)["index"])
+            for i in np.flatnonzero(aside & ~out)}  # fmt: skip
+    if back:
+        tr.repairs = [
+            r
+            for r in tr.repairs
+            if not (r["kind"] == "spot" and r["action"] == "left out" and (r["view"], r["index"]) in back)
+        ]
+
+
+def _relaser(tr: "_Trial", full: Packed, candidates: np.ndarray, limit: float) -> dict[int, int]:
+    """For the spot rows of ``full`` where ``candidates`` holds: the one other laser whose spot on
+    the row's board, at the trial's solution, lies within ``limit`` px of its pixel (row, counted
+    after the dots, -> laser); rows with none or several are not listed."""
+    n_d, n_s = int(full.counts[0]), int(full.counts[1])
+    rows = np.flatnonzero(candidates[n_d : n_d + n_s])
+    if not rows.size or tr.obs.n_lasers < 2:
+        return {}
+    own = np.asarray(full.spot_laser)[:n_s]
+    cand = [(j, k) for j in rows for k in range(tr.obs.n_lasers) if k != own[j]]
+    c = np.asarray(tr.pk.counts).copy()
+    c[1] = len(cand)
+    probe = dataclasses.replace(
+        tr.pk,
+        spot_pose=np.asarray([full.spot_pose[j] for j, _ in cand], np.int64),
+        spot_laser=np.asarray([k for _, k in cand], np.int64),
+        spot_pixels=np.asarray([full.spot_pixels[j] for j, _ in cand], float),
+        counts=c,
+        spot_src=(),
+    )
+    norm, _, ok = _per_observation(tr.params, probe)
+    first = int(c[0])
+    near = ok[first : first + len(cand)] & (norm[first : first + len(cand)] <= limit)
+    out = {}
+    for j in rows:
+        hits = [k for m, (jj, k) in enumerate(cand) if jj == j and near[m]]
+        if len(hits) == 1:
+            out[n_d + int(j)] = hits[0]
+    return out
 
 
 def _regrid(tr: "_Trial", full: Packed, candidates: np.ndarray, limit: float) -> dict[int, int]:

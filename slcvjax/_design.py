@@ -47,6 +47,7 @@ from ._simulate import PAPER_HALF_WIDTH, PAPER_ROTATION_DEG, PAPER_TRANSLATION_M
 
 N_RIM = 90  # rim edge pixels per view, as the simulator writes
 MIN_DOTS = 4  # visible dots a board needs in a view for its pose
+MIN_SPOTS = 3  # spots each laser needs over the plan: with fewer its prediction is infinite
 
 
 @dataclass
@@ -207,6 +208,11 @@ def _predict(views, rig, T_bw, chess, pk, sigma, n_v):
         return jnp.trace(j @ c @ j.T), c[2, 2] + c[3, 3]
 
     pos, ang = jax.vmap(laser)(jnp.arange(rig.lasers.n))
+    # a laser with too few spots seen cannot be calibrated at all (its line needs spots on
+    # boards at different distances): no finite prediction
+    per_laser = jax.ops.segment_sum(w_spot.astype(int), pk.spot_laser, num_segments=rig.lasers.n)
+    enough = jnp.min(per_laser) >= MIN_SPOTS
+    pos, ang = jnp.where(enough, pos, jnp.inf), jnp.where(enough, ang, jnp.inf)
     return pos, ang, jnp.sum(w_dot), jnp.sum(w_spot)
 
 
@@ -407,16 +413,19 @@ def confirm(plan: Plan, trials: int, seed: int = 0, progress: bool = False) -> d
     """Monte Carlo check of a plan: simulate and calibrate it ``trials`` times at its noise.
 
     Returns the RMS over trials and lasers of the joint calibration's position error at
-    each laser's true working point (mm) and of its direction error (deg), and how many
-    calibrations converged.
+    each laser's true working point (mm) and of its direction error (deg), how many
+    calibrations converged, and how many could not be made at all (``failed``, with the
+    first reason: a plan whose views leave a laser without usable spots); the RMS figures
+    are None when every trial failed.
     """
     from ._calibrate import calibrate, laser_errors
     from ._simulate import box_scene, simulate
+    from ._staged import CalibrationError
 
     if trials < 1:
         raise ValueError(f"trials must be at least 1, got {trials}")
     scene = box_scene(plan.rig, plan.views, plan.half_width, n_chess_views=len(plan.chess_poses) or 12)
-    pos, ang, conv = [], [], 0
+    pos, ang, conv, failed = [], [], 0, []
     it = range(trials)
     if progress:
         from tqdm import tqdm
@@ -424,15 +433,22 @@ def confirm(plan: Plan, trials: int, seed: int = 0, progress: bool = False) -> d
         it = tqdm(it, desc="confirm", unit="calibration")
     for t in it:
         obs, truth = simulate(scene, noise=plan.noise, seed=seed + t)
-        res = calibrate(usable_observations(obs))
+        try:
+            res = calibrate(usable_observations(obs))
+        except CalibrationError as e:
+            failed.append(str(e))
+            continue
         conv += res.passes[-1].converged
         p, a = laser_errors(res.rig, truth.rig, _true_working_points(scene))
         pos.append(p)
         ang.append(a)
+    out = {"trials": trials, "converged": conv, "failed": len(failed)}
+    if failed:
+        out["first_failure"] = failed[0]
+    if not pos:
+        return out | {"position_rms_mm": None, "direction_rms_deg": None}
     pos, ang = np.concatenate(pos), np.concatenate(ang)
-    return {
-        "trials": trials,
-        "converged": conv,
+    return out | {
         "position_rms_mm": float(np.sqrt(np.mean(pos**2))),
         "direction_rms_deg": float(np.degrees(np.sqrt(np.mean(ang**2)))),
     }

@@ -286,20 +286,31 @@ def find_dots(green: np.ndarray, disc: MirrorDisc, edge: int = 4) -> np.ndarray:
     return _weighted_centroids(wall - green, labels, ids)
 
 
-def find_spots(bgr: np.ndarray, disc: MirrorDisc, threshold: float = 25.0) -> np.ndarray:
+def find_spots(bgr: np.ndarray, disc: MirrorDisc, threshold: float = 25.0, edge: int = 2) -> np.ndarray:
     """Laser spots inside the mirror's disc: (S, 2) centroids.
 
     Found where red minus green exceeds ``threshold`` grey levels; located by the
     centroid of red / green - 1, the laser's light relative to the scene's.  That
     ratio does not depend on the paper's albedo, so a spot partly on a dark dot
-    keeps its centre (a red-minus-green weight would be pulled off it).
+    keeps its centre (a red-minus-green weight would be pulled off it); one with a
+    quarter of its pixels or more on a dot is skipped (the dot hides its profile).  A
+    spot closer than ``edge`` px to the disc's outline is skipped: the rim cuts its
+    image, and its centroid would lie off its centre.
     """
     red = bgr[:, :, 2].astype(float) - bgr[:, :, 1].astype(float)
     red = cv2.GaussianBlur(red, (0, 0), 0.7)
     mask = ((red > threshold) & disc.mask).astype(np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
     green = bgr[:, :, 1].astype(float)
-    ids = [k for k in range(1, n) if stats[k, cv2.CC_STAT_AREA] >= 2]
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * edge + 1, 2 * edge + 1))
+    core = cv2.erode(disc.mask.astype(np.uint8), kernel).astype(bool)
+    # a spot mostly on a dark dot is skipped too: the dot hides its profile
+    dark = green < 0.5 * (disc.inside_level + disc.outside_level)
+    ids = [
+        k
+        for k in range(1, n)
+        if stats[k, cv2.CC_STAT_AREA] >= 2 and core[labels == k].all() and dark[labels == k].mean() < 0.25
+    ]
     # red over green cancels the paper's albedo (a spot half on a dark dot keeps its centre)
     raw = bgr[:, :, 2].astype(float) / np.maximum(green, 4.0) - 1.0
     return _weighted_centroids(raw, labels, ids)

@@ -63,8 +63,11 @@ def triangulate_spot(rig: Rig, laser: Int[Array, ""], uv: Float[Array, "2"]) -> 
     """One spot: the point of laser ``laser``'s line nearest the reflected ray of pixel ``uv``.
 
     ``valid`` is False where the pixel's ray misses the mirror, the ray and the
-    line are parallel (within 1e-12), or the nearest point lies behind the mirror
-    point along the reflected ray.  Values and gradients stay finite everywhere.
+    line are parallel (within 1e-12), the nearest point lies behind the mirror
+    point along the reflected ray, or behind the line's foot of the perpendicular from
+    the camera centre (not on the beam: lasers that radiate from a ring have opposite
+    neighbours whose lines, continued backwards, run close to each other's beams).
+    Values and gradients stay finite everywhere.
     """
     ray = back_project(rig.camera, rig.mirror, uv)
     return _nearest_on_line(ray, rig.lasers.points[laser], rig.lasers.directions[laser])[0]
@@ -82,7 +85,7 @@ def _nearest_on_line(ray, p, d) -> tuple[SpotPoints, Float[Array, ""], Float[Arr
     xyz = p + s * d
     gap = safe_norm(xyz - (ray.point + t * r))
     angle = safe_arccos(jnp.abs(b))
-    valid = ray.valid & (det > 1e-12) & (t > 0.0)
+    valid = ray.valid & (det > 1e-12) & (t > 0.0) & (jnp.dot(xyz, d) > 0.0)
     return SpotPoints(xyz, gap, angle, valid), t, s
 
 

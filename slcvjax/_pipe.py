@@ -198,10 +198,13 @@ def pipe_experiment(
     used = [~p["points"].parallel & ~p["points"].off_line for p in poses]
     errs = np.concatenate([p["error"][u] for p, u in zip(poses, used, strict=True)]) if poses else np.zeros((0, 3))
     stds = np.concatenate([p["points"].std[u] for p, u in zip(poses, used, strict=True)]) if poses else np.zeros((0, 3))
+    errs_all = np.concatenate([p["error"] for p in poses]) if poses else np.zeros((0, 3))
+    stds_all = np.concatenate([p["points"].std for p in poses]) if poses else np.zeros((0, 3))
     circles = [p["circle"] for p in poses if p["circle"] is not None]
     fit_err = np.abs(np.concatenate([c.residuals for c in circles])) if circles else np.zeros(0)
     diam = np.array([c.diameter for c in circles])
     d_std = np.array([c.diameter_std for c in circles], dtype=float)
+    within = np.abs(diam - scene.diameter) <= 2.0 * d_std  # NaN std: not within
 
     def stat(f, x):
         return float(f(x)) if np.size(x) else None
@@ -228,6 +231,10 @@ def pipe_experiment(
             "fit_error_max_mm": stat(np.max, fit_err),
             "point_error_rms_mm": stat(lambda e: np.sqrt(np.mean(np.sum(e**2, axis=1))), errs),
             "point_std_rms_mm": stat(lambda e: np.sqrt(np.mean(np.sum(e**2, axis=1))), stds),
+            "point_error_over_std_all": (
+                float(np.sqrt(np.sum(errs_all**2) / np.sum(stds_all**2))) if np.sum(stds_all**2) > 0 else None
+            ),
+            "diameters_within_two_std": int(np.sum(within)),
         },
     }
 

@@ -60,7 +60,7 @@ class RenderOptions:
     noise: float = 1.0
     blur: float = 0.6
     exposure: float = 1.0
-    dot_radius_mm: float = 2.0
+    dot_radius_mm: float = 1.6
     spot_sigma_mm: float = 0.8
     spot_power: float = 0.9
     body_radius_mm: float = 12.0

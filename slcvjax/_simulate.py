@@ -1,16 +1,29 @@
 """The simulator: the paper's reference rig in a calibration box, and its observations.
 
-The ``paper`` preset follows Chen, Zhou & Xue (Measurement 148, 2019), Tables 1-2:
-a 640x480 camera (fx 551.757, fy 551.95, cx 322.826, cy 205.202 px, barrel
-distortion), a 20 mm x 10 mm cone a few centimetres in front of the lens,
-slightly tilted (1.4 deg) and off-axis (0.7 mm), ten lasers on a ring beside
-the mirror aimed outwards and down (-27 deg) so that their spots are seen
-through the mirror both on the walls of a 350 mm box and inside a 150 mm pipe.
-The box walls carry 3x3 dot grids (80 mm across by 30 mm down) where the mirror looks
-(elevations -37 to -14 deg as seen from the mirror); sixteen views move the
-sensor inside the box; twelve direct views of a 9x6, 25 mm chessboard serve the
-intrinsics; every view has rim edge pixels.  Only points that are really
-visible are written.
+The ``paper`` preset follows Chen, Zhou & Xue (Measurement 148, 2019), Tables 1-4,
+whose printed values lost their signs (magnitudes only):
+
+- Table 1: a 640x480 camera, fx 551.757, fy 551.95, cx 322.826, cy 205.202 px; the
+  distortion magnitudes are taken with barrel signs.
+- Table 2: a cone of radius 20 mm and height 10 mm, 48 mm in front of the lens; its
+  small tilt (1.4 deg) and offset (0.7 mm) are the preset's own.
+- Tables 3-4: ten lasers whose beams radiate outwards nearly across the camera axis
+  (Table 4's unit directions have ``|n_z| <= 0.055``, beams within 3.2 deg of the plane
+  across the axis).  Which way each tilts was lost with the signs; the preset draws each
+  beam's elevation in [-3.15, 0] deg (towards the camera's side, which keeps the spots in
+  the mirror's view on the farther box walls), its azimuth within 2 deg of radial.  The
+  table's emitter positions cannot be used as printed: the preset puts the emitters on a
+  30 mm ring 5 mm in front of the lens (below the mirror, so that every spot is seen
+  through it), with millimetre mounting errors.
+
+The mirror sees the world between about 37 and 18 deg below the plane across its axis,
+so a nearly horizontal beam's spot is seen at a healthy angle to its viewing ray
+(25-37 deg inside a 150 mm pipe, 18-30 deg on the box walls).  The calibration box is
+280 mm wide (the paper does not give its size; a wider box would put its walls' spots
+above the mirror's view): its walls carry 3x3 dot grids (50 mm across by 20 mm down,
+centred 30 mm behind the lens) where the mirror looks; sixteen views move the sensor
+inside the box; twelve direct views of a 9x6, 25 mm chessboard serve the intrinsics;
+every view has rim edge pixels.  Only points that are really visible are written.
 """
 
 from dataclasses import dataclass
@@ -27,7 +40,12 @@ from ._pose import Pose, so3_exp
 from ._rig import Rig, project_board_points, project_direct, project_rim
 
 PRESETS = ("paper",)
-PITCH_X = 80.0
+PITCH_X = 50.0
+PITCH_Y = 20.0
+GRID_Z_MM = -30.0  # the wall grids' centre along the camera axis, box frame
+LASER_RING_MM = 30.0
+LASER_RING_Z_MM = 5.0
+LASER_MAX_NZ = 0.055  # Table 4: the largest |n_z| of a beam's unit direction
 
 
 @dataclass
@@ -67,7 +85,7 @@ def paper_camera() -> Camera:
 
 
 def paper_rig(n_lasers: int = 10) -> Rig:
-    """The reference rig with ``n_lasers`` lasers evenly spread on a ring beside the mirror."""
+    """The reference rig with ``n_lasers`` lasers evenly spread on a ring, beams nearly across the axis."""
     if n_lasers < 1:
         raise ValueError(f"n_lasers must be at least 1, got {n_lasers}")
     mirror = ConeMirror.create([0.6, -0.4, 48.0], [0.02, -0.015, 1.0], 20.0, 10.0)
@@ -75,9 +93,9 @@ def paper_rig(n_lasers: int = 10) -> Rig:
     pts, dirs = [], []
     for i in range(n_lasers):
         az = 2 * np.pi * i / n_lasers + np.radians(rng.uniform(-3, 3))
-        ring, z = 30.0 + rng.uniform(-1, 1), 38.5 + rng.uniform(-1.5, 1.5)
+        ring, z = LASER_RING_MM + rng.uniform(-1, 1), LASER_RING_Z_MM + rng.uniform(-1.5, 1.5)
         aim_az = az + np.radians(rng.uniform(-2, 2))
-        elev = np.radians(-27.5 + rng.uniform(-2, 2))
+        elev = -np.arcsin(rng.uniform(0.0, LASER_MAX_NZ))
         pts.append([ring * np.cos(az), ring * np.sin(az), z])
         dirs.append([np.cos(elev) * np.cos(aim_az), np.cos(elev) * np.sin(aim_az), np.sin(elev)])
     return Rig(paper_camera(), mirror, Lasers.create(np.array(pts), np.array(dirs)))
@@ -126,7 +144,7 @@ def _chess_poses(camera: Camera, board: np.ndarray, n: int, rng: np.random.Gener
 
 
 # the paper preset's box and motion range: roll, pitch, yaw (deg) and x, y, z (mm) of T_box_cam
-PAPER_HALF_WIDTH = 175.0
+PAPER_HALF_WIDTH = 140.0
 PAPER_ROTATION_DEG = (3.0, 3.0, 20.0)
 PAPER_TRANSLATION_MM = (25.0, 25.0, 8.0)
 
@@ -150,7 +168,7 @@ def paper_views(n_views: int = 16) -> np.ndarray:
 
 def box_walls(half_width: float = PAPER_HALF_WIDTH) -> tuple[dict[str, np.ndarray], list[Pose]]:
     """The preset's four walls (3x3 dot grids) around a box of ``half_width``: points and ``T_box_wall``."""
-    return _box_walls(half_width, -40.0, PITCH_X, 30.0)
+    return _box_walls(half_width, GRID_Z_MM, PITCH_X, PITCH_Y)
 
 
 def box_scene(rig: Rig, views: np.ndarray, half_width: float = PAPER_HALF_WIDTH, n_chess_views: int = 12) -> Scene:
@@ -176,7 +194,7 @@ def box_scene(rig: Rig, views: np.ndarray, half_width: float = PAPER_HALF_WIDTH,
     info = {
         "preset": "paper",
         "box_half_width_mm": float(half_width),
-        "wall_grid": {"cols": 3, "rows": 3, "pitch_x_mm": PITCH_X, "pitch_y_mm": 30.0, "centre_z_mm": -40.0},
+        "wall_grid": {"cols": 3, "rows": 3, "pitch_x_mm": PITCH_X, "pitch_y_mm": PITCH_Y, "centre_z_mm": GRID_Z_MM},
         "chessboard": {"cols": 9, "rows": 6, "square_mm": 25.0},
     }
     return Scene(rig, boards, box_poses, "chess", chess_poses, 90, info)

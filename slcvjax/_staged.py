@@ -411,7 +411,9 @@ def spot_line_residuals(org, dirs, metric, normals, origins, points, directions)
     """(S, L) px: each spot's distance from where each line ``(points, directions)`` meets
     the spot's board plane (``normals``, ``origins``, per spot), seen from the spot's mirror
     point ``org`` and mapped to pixels by its ray's ``metric`` (2x3, direction change to
-    pixels, to first order); inf where the line misses the plane or the point is behind."""
+    pixels, to first order); inf where the line misses the plane, the point is behind the
+    mirror point, or behind the line's foot of the perpendicular from the camera centre (not
+    on the beam: see :func:`._measure.triangulate_spot`)."""
     den = normals @ directions.T  # (S, L)
     lam = np.sum(normals[:, None, :] * (origins[:, None, :] - points[None]), axis=2) / np.where(
         np.abs(den) < 1e-12, np.nan, den
@@ -421,7 +423,7 @@ def spot_line_residuals(org, dirs, metric, normals, origins, points, directions)
     dist = np.linalg.norm(v, axis=2)
     dq = v / np.where(dist > 0, dist, np.nan)[..., None]
     r = np.linalg.norm(np.einsum("sij,slj->sli", metric, dq - dirs[:, None, :]), axis=2)
-    ahead = np.sum(dq * dirs[:, None, :], axis=2) > 0.0
+    ahead = (np.sum(dq * dirs[:, None, :], axis=2) > 0.0) & (np.sum(q * directions[None], axis=2) > 0.0)
     return np.where(np.isfinite(r) & ahead, r, np.inf)
 
 

@@ -417,7 +417,8 @@ def _pipe_report(res, paper: bool = True) -> None:
     print(
         f"pipe {s['true_diameter_mm']:g} mm, {s['poses']} poses, {s['points']} points: "
         f"mean diameter {_fmt(s['mean_diameter_mm'])} mm (median |error| "
-        f"{_fmt(s['median_abs_diameter_error_mm'])} mm, rms reported std {_fmt(s['rms_diameter_std_mm'])} mm)"
+        f"{_fmt(s['median_abs_diameter_error_mm'])} mm, rms reported std {_fmt(s['rms_diameter_std_mm'])} mm; "
+        f"{s['diameters_within_two_std']} of {s['circles']} within two reported std of the truth)"
     )
     print(
         f"per-point fit error: mean {_fmt(s['fit_error_mean_mm'])} mm, max {_fmt(s['fit_error_max_mm'])} mm; "
@@ -546,8 +547,10 @@ def _cmd_design(args) -> int:
             confirmed[name] = confirm(p, args.confirm, args.seed, progress=sys.stderr.isatty())
             c = confirmed[name]
             print(
-                f"  {name:6s} simulated rms: position {c['position_rms_mm']:.4f} mm, direction "
-                f"{c['direction_rms_deg']:.4f} deg ({c['converged']}/{c['trials']} converged)",
+                f"  {name:6s} simulated rms: position {_fmt(c['position_rms_mm'], 4)} mm, direction "
+                f"{_fmt(c['direction_rms_deg'], 4)} deg ({c['converged']}/{c['trials']} converged"
+                + (f", {c['failed']} could not be calibrated: {c['first_failure']}" if c["failed"] else "")
+                + ")",
                 flush=True,
             )
     out = Path(args.out)
