@@ -713,7 +713,8 @@ def _leave_out(tr: "_Trial", starts, rerun, rounds: int = 3) -> None:
         out[list(moved) + list(lasers)] = False
         tr.use(full.select(~out[:n_d], ~out[n_d:]))
         rerun(None, scale)
-        misfit = [i for i in lasers if _outliers(tr, full)[0][i]]
+        still_bad = _outliers(tr, full)[0]
+        misfit = [i for i in lasers if still_bad[i]]
         if misfit:  # given another laser but still beyond the noise: out again, with its own label
             for i in misfit:
                 labels[i - n_d] = old_labels[i - n_d]
@@ -731,13 +732,10 @@ def _leave_out(tr: "_Trial", starts, rerun, rounds: int = 3) -> None:
                 | {"reason": f"lies on grid position {k} of its board (not seen otherwise), not on its own"}
             )
         for i, k in lasers.items():
-            src = _spot_source(tr, i - n_d, full)
-            same = [r["kind"] == "spot" and r["view"] == src["view"] and r["index"] == src["index"] for r in tr.repairs]
             # its residual under its own label: now, else where the lines set it aside
-            before = [r.get("residual_px") for r, m in zip(tr.repairs, same, strict=True) if m]
-            tr.repairs = [r for r, m in zip(tr.repairs, same, strict=True) if not m]
+            before = [r.get("residual_px") for r in _take_spot_records(tr, full, [i])]
             tr.repairs.append(
-                src
+                _spot_source(tr, i - n_d, full)
                 | {"action": "relabelled", "laser": int(old_labels[i - n_d])}
                 | {"residual_px": float(norm[i]) if valid[i] else (before[0] if before else None)}
                 | {"new_laser": k, "new_residual_px": float(norm_new[i])}
@@ -765,17 +763,32 @@ def _leave_out(tr: "_Trial", starts, rerun, rounds: int = 3) -> None:
         )
 
 
+def _take_spot_records(tr: "_Trial", full: Packed, rows) -> list[dict]:
+    """Remove from ``tr.repairs`` the records of the spots in ``rows`` of ``full`` (counted
+    after the dots) and return them."""
+    n_d = int(full.counts[0])
+    keys = {(src["view"], src["index"]) for src in (_spot_source(tr, i - n_d, full) for i in rows)}
+    mine = [r["kind"] == "spot" and (r["view"], r["index"]) in keys for r in tr.repairs]
+    taken = [r for r, m in zip(tr.repairs, mine, strict=True) if m]
+    tr.repairs = [r for r, m in zip(tr.repairs, mine, strict=True) if not m]
+    return taken
+
+
 def _readmit(tr: "_Trial", full: Packed, aside: np.ndarray, out: np.ndarray) -> None:
     """Drop the records of the spots set aside by their lines that are no longer left out."""
-    n_d = int(full.counts[0])
-    back = {(_spot_source(tr, i - n_d, full)["view"], _spot_source(tr, i - n_d, full)["index"])
-            for i in np.flatnonzero(aside & ~out)}  # fmt: skip
-    if back:
-        tr.repairs = [
-            r
-            for r in tr.repairs
-            if not (r["kind"] == "spot" and r["action"] == "left out" and (r["view"], r["index"]) in back)
-        ]
+    _take_spot_records(tr, full, np.flatnonzero(aside & ~out))
+
+
+def _probe(tr: "_Trial", kind: int, **rows) -> tuple[np.ndarray, np.ndarray]:
+    """Residual norms (px) and validity, at the trial's solution, of candidate rows of one kind
+    (0: dots, 1: spots; ``rows``: that kind's arrays, of one length) put in place of the
+    trial's own rows of that kind: how candidate labels are tried."""
+    c = np.asarray(tr.pk.counts).copy()
+    c[kind] = len(next(iter(rows.values())))
+    probe = dataclasses.replace(tr.pk, counts=c, **{("dot_src", "spot_src")[kind]: ()}, **rows)
+    norm, _, ok = _per_observation(tr.params, probe)
+    first = int(c[0]) if kind == 1 else 0
+    return norm[first : first + int(c[kind])], ok[first : first + int(c[kind])]
 
 
 def _relaser(tr: "_Trial", full: Packed, candidates: np.ndarray, limit: float) -> dict[int, int]:
@@ -788,19 +801,14 @@ def _relaser(tr: "_Trial", full: Packed, candidates: np.ndarray, limit: float) -
         return {}
     own = np.asarray(full.spot_laser)[:n_s]
     cand = [(j, k) for j in rows for k in range(tr.obs.n_lasers) if k != own[j]]
-    c = np.asarray(tr.pk.counts).copy()
-    c[1] = len(cand)
-    probe = dataclasses.replace(
-        tr.pk,
+    norm, ok = _probe(
+        tr,
+        1,
         spot_pose=np.asarray([full.spot_pose[j] for j, _ in cand], np.int64),
         spot_laser=np.asarray([k for _, k in cand], np.int64),
         spot_pixels=np.asarray([full.spot_pixels[j] for j, _ in cand], float),
-        counts=c,
-        spot_src=(),
     )
-    norm, _, ok = _per_observation(tr.params, probe)
-    first = int(c[0])
-    near = ok[first : first + len(cand)] & (norm[first : first + len(cand)] <= limit)
+    near = ok & (norm <= limit)
     out = {}
     for j in rows:
         hits = [k for m, (jj, k) in enumerate(cand) if jj == j and near[m]]
@@ -831,18 +839,14 @@ def _regrid(tr: "_Trial", full: Packed, candidates: np.ndarray, limit: float) ->
                 pts.append(grid[k]), pix.append(full.dot_pixels[i])
     if not cand_row or len(cand_row) > 4 * n_d:
         return {}
-    c = np.asarray(full.counts).copy()
-    c[0] = len(cand_row)
-    probe = dataclasses.replace(
-        tr.pk,
+    norm, ok = _probe(
+        tr,
+        0,
         dot_pose=np.asarray(pose, np.int64),
         dot_points=np.asarray(pts, float),
         dot_pixels=np.asarray(pix, float),
-        counts=c,
-        dot_src=(),
     )
-    norm, _, ok = _per_observation(tr.params, probe)
-    near = ok[: len(cand_row)] & (norm[: len(cand_row)] <= limit)
+    near = ok & (norm <= limit)
     out = {}
     for i in rows:
         hits = [cand_k[m] for m in np.flatnonzero(near) if cand_row[m] == i]

@@ -306,11 +306,13 @@ def find_spots(bgr: np.ndarray, disc: MirrorDisc, threshold: float = 25.0, edge:
     core = cv2.erode(disc.mask.astype(np.uint8), kernel).astype(bool)
     # a spot mostly on a dark dot is skipped too: the dot hides its profile
     dark = green < 0.5 * (disc.inside_level + disc.outside_level)
-    ids = [
-        k
-        for k in range(1, n)
-        if stats[k, cv2.CC_STAT_AREA] >= 2 and core[labels == k].all() and dark[labels == k].mean() < 0.25
-    ]
+    ids = []
+    for k in range(1, n):
+        if stats[k, cv2.CC_STAT_AREA] < 2:
+            continue
+        reg = labels == k
+        if core[reg].all() and dark[reg].mean() < 0.25:
+            ids.append(k)
     # red over green cancels the paper's albedo (a spot half on a dark dot keeps its centre)
     raw = bgr[:, :, 2].astype(float) / np.maximum(green, 4.0) - 1.0
     return _weighted_centroids(raw, labels, ids)
