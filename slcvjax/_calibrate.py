@@ -515,11 +515,6 @@ def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, s
         tr.scale = robust_scale(0.05)(tr)
     if "poses" not in freeze:
         other_starts(every, turned_only=False)
-    # the spots set aside by their lines come back for C: the outlier check below judges them
-    # on the final geometry (a board pose still wrong in B made some look wrong)
-    for tr in trials:
-        if tr.set_aside is not None:
-            tr.use(tr.set_aside[0])
     # C: final pass at the re-estimated scale.  Every kind keeps weight 1: weighting each by
     # its own noise (the rim's is larger in rendered images) made the lasers worse from images
     # (benchmarks/images_vs_file.py), where the dots' errors are mostly systematic
@@ -658,89 +653,28 @@ def _leave_out(tr: "_Trial", starts, rerun, rounds: int = 3) -> None:
     calibration's loss (``rerun(None, scale)``); observations left out that fit the new solution come
     back, until the set left out stays the same (at most ``rounds`` times).  A board left with
     fewer than :data:`MIN_BOARD_DOTS` dots is left out whole (its pose is not determined).
-    Spots set aside earlier by their lines (``tr.set_aside``) are part of the final pass and
-    judged with the rest: those that fit the final geometry stay (a board pose wrong when the
-    lines were fitted made them look wrong).  What stays left out is recorded in ``tr.repairs``."""
-    full, scale = tr.pk, tr.scale
-    n_d = int(full.counts[0])
-    out = np.zeros(n_d + int(full.counts[1]), bool)
-    aside = out.copy()
-    if tr.set_aside is not None and tr.set_aside[0] is full:
-        aside = tr.set_aside[1]
-    if not _outliers(tr, full)[0].any():
-        _readmit(tr, full, aside, out)
-        return
-    # graduated: at a wide scale first, where the good observations of a dragged board still
-    # pull (at the final scale they may already count as outliers: a local minimum)
-    rerun("cauchy", CAUCHY_WIDEN * scale)
-    rerun("cauchy", scale)
-    starts()
-    rerun("cauchy", scale)
-    ran = False  # the final pass run again with the calibration's loss on what is kept
-    for _ in range(rounds):
-        bad = _outliers(tr, full)[0]
-        # a board with too few dots left: every dot and spot of it out
-        pose_d, pose_s = np.asarray(full.dot_pose)[:n_d], np.asarray(full.spot_pose)[: len(out) - n_d]
-        kept = np.bincount(pose_d[~bad[:n_d]], minlength=full.n_poses)
-        weak = (kept < MIN_BOARD_DOTS) & (np.bincount(pose_d, minlength=full.n_poses) >= MIN_BOARD_DOTS)
-        whole = np.concatenate([weak[pose_d], weak[pose_s]])
-        bad |= whole
-        if ran and np.array_equal(bad, out):
-            break
-        out = bad
-        tr.use(full.select(~out[:n_d], ~out[n_d:]))
+    Spots set aside earlier by their lines (``tr.set_aside``) are predictions at this geometry,
+    not fitted residuals: those predicted near their line (:func:`_predicted_fit`) come back
+    and are judged with the rest (a board pose wrong when the lines were fitted made them look
+    wrong), before the outliers are looked for and again once they are out (:func:`_bring_back`).  What stays
+    left out is recorded in ``tr.repairs``."""
+    scale = tr.scale
+    none_aside = np.zeros(int(tr.pk.counts[0]) + int(tr.pk.counts[1]), bool)
+    full, aside = tr.set_aside if tr.set_aside is not None else (tr.pk, none_aside)
+    out = aside & ~_predicted_fit(tr, full, aside)
+    if not np.array_equal(out, aside):
+        _use_all_but(tr, full, out)
         rerun(None, scale)
-        ran = True
+    whole = np.zeros_like(out)
+    if not np.array_equal(_outliers(tr, full)[0], out):  # more than what stays set aside
+        out, whole = _robust_rounds(tr, full, out, starts, rerun, scale, rounds)
     _readmit(tr, full, aside, out)
     if not out.any():
         return
-    # a dot left out that lies on another grid position of its board (one not seen in that
-    # view) is given that position, a spot left out that lies on exactly one other laser's
-    # line at this geometry is given that laser, and they come back
+    # the residuals that left them out, for the records
     _, norm, kind, limit, valid = _outliers(tr, full)
-    moved = _regrid(tr, full, out & ~whole, limit[0])
-    # a spot left out is a prediction, not a fitted residual: its other laser is looked for as
-    # the consensus does (within CONSENSUS_PX, every other line far), and kept only if it fits
-    # once refitted
-    lasers = _relaser(tr, full, out & ~whole, CONSENSUS_PX)
-    if moved or lasers:
-        old_full, n_s = full, int(full.counts[1])
-        old_labels = np.asarray(full.spot_laser)[:n_s]
-        labels = old_labels.copy()
-        for i, k in lasers.items():
-            labels[i - n_d] = k
-        full = _with_dot_labels(full, tr.obs, moved).select(np.ones(n_d, bool), np.ones(n_s, bool), labels)
-        out[list(moved) + list(lasers)] = False
-        tr.use(full.select(~out[:n_d], ~out[n_d:]))
-        rerun(None, scale)
-        still_bad = _outliers(tr, full)[0]
-        misfit = [i for i in lasers if still_bad[i]]
-        if misfit:  # given another laser but still beyond the noise: out again, with its own label
-            for i in misfit:
-                labels[i - n_d] = old_labels[i - n_d]
-                del lasers[i]
-            full = full.select(np.ones(n_d, bool), np.ones(n_s, bool), labels)
-            out[misfit] = True
-            tr.use(full.select(~out[:n_d], ~out[n_d:]))
-            rerun(None, scale)
-        norm_new = _per_observation(tr.params, full)[0]
-        for i, k in moved.items():
-            tr.repairs.append(
-                _dot_source(tr, i, old_full)
-                | {"action": "relabelled", "new_index": k, "residual_px": float(norm[i]) if valid[i] else None}
-                | {"new_residual_px": float(norm_new[i])}
-                | {"reason": f"lies on grid position {k} of its board (not seen otherwise), not on its own"}
-            )
-        for i, k in lasers.items():
-            # its residual under its own label: now, else where the lines set it aside
-            before = [r.get("residual_px") for r in _take_spot_records(tr, full, [i])]
-            tr.repairs.append(
-                _spot_source(tr, i - n_d, full)
-                | {"action": "relabelled", "laser": int(old_labels[i - n_d])}
-                | {"residual_px": float(norm[i]) if valid[i] else (before[0] if before else None)}
-                | {"new_laser": k, "new_residual_px": float(norm_new[i])}
-                | {"reason": f"lies on laser {k}'s line at the final geometry, not on its own"}
-            )
+    full, out = _bring_back(tr, full, aside, out, whole, rerun, scale)
+    n_d = int(full.counts[0])
     for i in np.flatnonzero(out & ~aside):  # those set aside and still out have their record
         if i < n_d:
             item = _dot_source(tr, i, full)
@@ -761,6 +695,112 @@ def _leave_out(tr: "_Trial", starts, rerun, rounds: int = 3) -> None:
             | {"reason": why}
             | ({"whole_board": True} if whole[i] else {})
         )
+
+
+def _use_all_but(tr: "_Trial", full: Packed, out: np.ndarray) -> None:
+    """The trial solves ``full`` without the rows where ``out`` holds (dots, then spots)."""
+    n_d = int(full.counts[0])
+    tr.use(full.select(~out[:n_d], ~out[n_d:]))
+
+
+def _predicted_fit(tr: "_Trial", full: Packed, rows: np.ndarray) -> np.ndarray:
+    """Where ``rows`` holds: the observation of ``full`` is predicted, at the trial's solution,
+    within :data:`CONSENSUS_PX` (elsewhere False).  A left-out spot's residual is a prediction,
+    which the spot's own weight would shrink: a laser with few spots predicts a good one several
+    noise sigmas off, so it is judged as the lines' consensus judges a spot, then refitted."""
+    if not rows.any():
+        return np.zeros_like(rows)
+    n = rows.size
+    norm, _, valid = _per_observation(tr.params, full)
+    return rows & valid[:n] & (norm[:n] <= CONSENSUS_PX)
+
+
+def _robust_rounds(tr: "_Trial", full: Packed, out, starts, rerun, scale: float, rounds: int):
+    """The outliers of ``full`` found under the Cauchy loss, left out, and the final pass run
+    again on the rest until the set stays the same (see :func:`_leave_out`); ``out``: the rows
+    left out so far.  Returns the rows left out and those of boards left out whole."""
+    n_d = int(full.counts[0])
+    # graduated: at a wide scale first, where the good observations of a dragged board still
+    # pull (at the final scale they may already count as outliers: a local minimum)
+    rerun("cauchy", CAUCHY_WIDEN * scale)
+    rerun("cauchy", scale)
+    starts()
+    rerun("cauchy", scale)
+    ran = False  # the final pass run again with the calibration's loss on what is kept
+    whole = np.zeros_like(out)
+    for _ in range(rounds):
+        bad = _outliers(tr, full)[0]
+        # a board with too few dots left: every dot and spot of it out
+        pose_d, pose_s = np.asarray(full.dot_pose)[:n_d], np.asarray(full.spot_pose)[: len(out) - n_d]
+        kept = np.bincount(pose_d[~bad[:n_d]], minlength=full.n_poses)
+        weak = (kept < MIN_BOARD_DOTS) & (np.bincount(pose_d, minlength=full.n_poses) >= MIN_BOARD_DOTS)
+        whole = np.concatenate([weak[pose_d], weak[pose_s]])
+        bad |= whole
+        if ran and np.array_equal(bad, out):
+            break
+        out = bad
+        _use_all_but(tr, full, out)
+        rerun(None, scale)
+        ran = True
+    return out, whole
+
+
+def _bring_back(tr: "_Trial", full: Packed, aside, out, whole, rerun, scale: float) -> tuple[Packed, np.ndarray]:
+    """Observations left out that fit once the outliers are gone come back: a dot that lies on
+    another grid position of its board (one not seen in that view) with that position, a spot
+    that lies on exactly one other laser's line (within :data:`CONSENSUS_PX`, as the consensus
+    looks for it: a left-out spot's residual is a prediction) with that laser, and a spot set
+    aside by its lines that its own line now predicts (:func:`_predicted_fit`).  The spots are
+    kept only if they fit once refitted.  Records the changes; returns the problem (with the
+    new labels) and the rows still left out."""
+    n_d, n_s = int(full.counts[0]), int(full.counts[1])
+    _, norm, _, limit, valid = _outliers(tr, full)
+    cand = out & ~whole
+    own = _predicted_fit(tr, full, cand & aside)
+    moved = _regrid(tr, full, cand, limit[0])
+    lasers = {i: k for i, k in _relaser(tr, full, cand, CONSENSUS_PX).items() if not own[i]}
+    if not (moved or lasers or own.any()):
+        return full, out
+    old_full, old_labels = full, np.asarray(full.spot_laser)[:n_s]
+    labels = old_labels.copy()
+    for i, k in lasers.items():
+        labels[i - n_d] = k
+    full = _with_dot_labels(full, tr.obs, moved).select(np.ones(n_d, bool), np.ones(n_s, bool), labels)
+    out = out & ~own
+    out[list(moved) + list(lasers)] = False
+    _use_all_but(tr, full, out)
+    rerun(None, scale)
+    still_bad = _outliers(tr, full)[0]
+    misfit = [i for i in lasers if still_bad[i]]
+    if misfit or (own & still_bad).any():  # still beyond the noise: out again, with its own label
+        for i in misfit:
+            labels[i - n_d] = old_labels[i - n_d]
+            del lasers[i]
+        full = full.select(np.ones(n_d, bool), np.ones(n_s, bool), labels)
+        out[misfit] = True
+        out |= own & still_bad
+        _use_all_but(tr, full, out)
+        rerun(None, scale)
+    _take_spot_records(tr, full, np.flatnonzero(own & ~out))
+    norm_new = _per_observation(tr.params, full)[0]
+    for i, k in moved.items():
+        tr.repairs.append(
+            _dot_source(tr, i, old_full)
+            | {"action": "relabelled", "new_index": k, "residual_px": float(norm[i]) if valid[i] else None}
+            | {"new_residual_px": float(norm_new[i])}
+            | {"reason": f"lies on grid position {k} of its board (not seen otherwise), not on its own"}
+        )
+    for i, k in lasers.items():
+        # its residual under its own label: now, else where the lines set it aside
+        before = [r.get("residual_px") for r in _take_spot_records(tr, full, [i])]
+        tr.repairs.append(
+            _spot_source(tr, i - n_d, full)
+            | {"action": "relabelled", "laser": int(old_labels[i - n_d])}
+            | {"residual_px": float(norm[i]) if valid[i] else (before[0] if before else None)}
+            | {"new_laser": k, "new_residual_px": float(norm_new[i])}
+            | {"reason": f"lies on laser {k}'s line at the final geometry, not on its own"}
+        )
+    return full, out
 
 
 def _take_spot_records(tr: "_Trial", full: Packed, rows) -> list[dict]:
