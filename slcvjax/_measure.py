@@ -39,11 +39,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ._mirror import back_project
+from ._mirror import back_project, project_through_mirror
 from ._persist import PersistentJit
 from ._problem import map_padded, map_rows
 from ._rig import Rig, laser_columns
-from ._safe import safe_arccos, safe_div, safe_norm, std_of_variance
+from ._safe import orthonormal_basis, safe_arccos, safe_div, safe_norm, std_of_variance
 
 PARALLEL_FACTOR = 5.0  # a ray-line angle below this many ray angular stds is "nearly parallel"
 GAP_SIGMAS = 5.0  # a ray passing farther than this many stds from its laser's line is "off the line"
@@ -108,6 +108,92 @@ def _triangulate(rig: Rig, lasers, uv) -> SpotPoints:
     return jax.vmap(triangulate_spot, in_axes=(None, 0, 0))(rig, lasers, uv)
 
 
+_HERMITE = np.polynomial.hermite_e.hermegauss(7)  # nodes and weights for a unit Gaussian
+
+
+def spot_image_offset(rig: Rig, x: Float[Array, "3"], normal: Float[Array, "3"], sigma_mm) -> Float[Array, "2"]:
+    """Where the centroid of a laser spot's image lies from the image of its centre (px).
+
+    The spot is a round Gaussian of std ``sigma_mm`` on the surface through ``x`` across
+    ``normal`` (camera frame, mm).  Through the mirror its image is squeezed and bent, so the
+    centroid a detector measures (the image's intensity-weighted mean: radiance is kept by the
+    mirror, each surface patch covers the pixels its projection's Jacobian says) is not the
+    projection of ``x``.  Computed by Gauss-Hermite quadrature over the spot (7 x 7 points).
+    """
+    e1, e2 = orthonormal_basis(normal)
+    nodes, weights = (jnp.asarray(a) for a in _HERMITE)
+    a, b = (g.ravel() for g in jnp.meshgrid(nodes, nodes))
+    w2 = jnp.outer(weights, weights).ravel()
+
+    def proj(ab):
+        return project_through_mirror(rig.camera, rig.mirror, x + sigma_mm * (ab[0] * e1 + ab[1] * e2)).uv
+
+    ab = jnp.stack([a, b], axis=1)
+    uv = jax.vmap(proj)(ab)
+    area = jnp.abs(jnp.linalg.det(jax.vmap(jax.jacfwd(proj))(ab)))
+    w = w2 * area
+    return jnp.sum(w[:, None] * uv, axis=0) / jnp.sum(w) - proj(jnp.zeros(2))
+
+
+def _spot_offsets(rig: Rig, rows):
+    """(n, 2) :func:`spot_image_offset` of rows ``[x (3), normal (3), sigma_mm]``."""
+    return jax.vmap(lambda r: spot_image_offset(rig, r[:3], r[3:6], r[6]))(rows)
+
+
+_spot_offsets_jit = PersistentJit(map_rows(_spot_offsets), "spot_image_offsets")
+
+
+def _points_of(rig: Rig, rows):
+    """Triangulated points and validity of rows ``[laser, u, v]``."""
+    sp = _triangulate(rig, rows[:, 0].astype(jnp.int32), rows[:, 1:3])
+    return sp.xyz, sp.valid
+
+
+_points_of_jit = PersistentJit(map_rows(_points_of), "triangulate_rows")
+
+
+def corrected_spot_pixels(
+    rig: Rig, lasers: np.ndarray, pixels: np.ndarray, sigma_mm: float, axis=(0.0, 0.0, 1.0), rounds: int = 2
+) -> np.ndarray:
+    """Spot centroids corrected for the mirror's distortion of each spot's image
+    (:func:`spot_image_offset`) on a surface of revolution about ``axis`` through the camera
+    centre (each spot's surface across its radial direction, as a pipe's wall): triangulate,
+    subtract the predicted offset from the detected centroid, again from the corrected one
+    (``rounds`` times).  Spots that cannot be triangulated keep their pixel."""
+    px0 = np.asarray(pixels, float).reshape(-1, 2)
+    if not len(px0):
+        return px0.copy()
+    a = np.asarray(axis, float) / np.linalg.norm(axis)
+    px = px0.copy()
+    for _ in range(rounds):
+        rows = np.concatenate([np.asarray(lasers, float).reshape(-1, 1), px], axis=1)
+        xyz, ok = map_padded(_points_of_jit, rig, rows=rows)
+        radial = xyz - (xyz @ a)[:, None] * a
+        norm = np.linalg.norm(radial, axis=1, keepdims=True)
+        ok = ok & (norm[:, 0] > 1e-9)
+        off = spot_image_offsets(rig, xyz, radial / np.where(norm > 1e-9, norm, 1.0), sigma_mm)
+        px = np.where(ok[:, None] & np.all(np.isfinite(off), axis=1, keepdims=True), px0 - off, px0)
+    return px
+
+
+def spot_image_offsets(rig: Rig, xyz: np.ndarray, normals: np.ndarray, sigma_mm: float) -> np.ndarray:
+    """(n, 2) :func:`spot_image_offset` for many spots, one compilation for every count."""
+    xyz = np.asarray(xyz, float).reshape(-1, 3)
+    if not len(xyz):
+        return np.zeros((0, 2))
+    rows = np.concatenate([xyz, np.asarray(normals, float).reshape(-1, 3), np.full((len(xyz), 1), sigma_mm)], 1)
+    return np.asarray(map_padded(_spot_offsets_jit, rig, rows=rows))
+
+
+def _ray_rate(rig: Rig, px: Float[Array, "2"]) -> Float[Array, ""]:
+    """The reflected ray's largest angular change per pixel at ``px`` (rad/px)."""
+    j_dir = jax.jacfwd(lambda px: back_project(rig.camera, rig.mirror, px).direction)(px)
+    return jnp.sqrt(jnp.linalg.eigvalsh(j_dir.T @ j_dir)[-1])
+
+
+_ray_rate_jit = PersistentJit(map_rows(lambda rig, uv: jax.vmap(lambda px: _ray_rate(rig, px))(uv)), "ray_rate")
+
+
 def _with_jacobians(rig: Rig, lasers, uv):
     """Points, their Jacobians wrt the pixel (n, 3, 2) and the rig's tangent (n, 3, G), and the
     reflected ray's largest angular change per pixel (n,) (rad/px)."""
@@ -119,9 +205,7 @@ def _with_jacobians(rig: Rig, lasers, uv):
 
         z = jnp.zeros(g)
         j_rig, j_px = jax.jacfwd(f, argnums=(0, 1))(z, px)
-        j_dir = jax.jacfwd(lambda px: back_project(rig.camera, rig.mirror, px).direction)(px)
-        ray_rate = jnp.sqrt(jnp.linalg.eigvalsh(j_dir.T @ j_dir)[-1])
-        return j_rig, j_px, ray_rate
+        return j_rig, j_px, _ray_rate(rig, px)
 
     j_rig, j_px, ray_rate = jax.vmap(one)(lasers, uv)
     return _triangulate(rig, lasers, uv), j_px, j_rig, ray_rate
@@ -171,6 +255,43 @@ class ViewPoints:
         return std_of_variance(np.diag(self.cov)).reshape(-1, 3)
 
 
+def _laser_stds(rig: Rig, rig_cov: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Each laser's offset (mm) and direction (rad) std from the calibration's covariance (its
+    (e1, e2) blocks); zeros without one."""
+    off_std, dir_std = np.zeros(rig.lasers.n), np.zeros(rig.lasers.n)
+    if rig_cov is not None:
+        for k in range(rig.lasers.n):
+            c = np.diag(rig_cov)[laser_columns(k)]
+            off_std[k], dir_std[k] = std_of_variance(c[0] + c[1]), std_of_variance(c[2] + c[3])
+    return off_std, dir_std
+
+
+def spots_on_lines(
+    rig: Rig, pixels: np.ndarray, pixel_sigma: float, rig_cov: np.ndarray | None = None, ray_rate=None
+) -> np.ndarray:
+    """(n, L): which laser lines each spot's reflected ray passes within ``GAP_SIGMAS`` times
+    the distance's first-order std (the pixel noise along the ray, the line's offset and
+    direction from ``rig_cov``), or within ``GAP_FLOOR_MM``, ahead of the mirror and on the
+    beam.  ``ray_rate`` (n,): each ray's angular change per pixel, computed when not given."""
+    pixels = np.asarray(pixels, dtype=float).reshape(-1, 2)
+    n_las = rig.lasers.n
+    if not len(pixels):
+        return np.zeros((0, n_las), bool)
+    if ray_rate is None:
+        ray_rate = np.asarray(map_padded(_ray_rate_jit, rig, rows=pixels))
+    off_std, dir_std = _laser_stds(rig, rig_cov)
+    gaps, along, reach, near_ok = map_padded(_gaps_to_every_laser_jit, rig, rows=pixels)
+    gap_std = np.hypot(along * pixel_sigma * ray_rate[:, None], np.hypot(off_std, dir_std * reach))
+    return near_ok & (gaps <= np.maximum(GAP_SIGMAS * gap_std, GAP_FLOOR_MM))
+
+
+def label_by_lines(rig: Rig, pixels: np.ndarray, pixel_sigma: float, rig_cov: np.ndarray | None = None) -> np.ndarray:
+    """(n,): the laser of each unlabelled spot, the one line its ray passes near
+    (:func:`spots_on_lines`); -1 where it passes near none, or near more than one."""
+    on_line = spots_on_lines(rig, pixels, pixel_sigma, rig_cov)
+    return np.where(on_line.sum(axis=1) == 1, np.argmax(on_line, axis=1), -1)
+
+
 def measure_spots(
     rig: Rig,
     lasers: np.ndarray,
@@ -208,19 +329,9 @@ def measure_spots(
     else:
         xyz, gap, angle, valid = np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros(0, bool)
         j_px, j_rig, ray_rate = np.zeros((0, 3, 2)), np.zeros((0, 3, rig.tangent_dim)), np.zeros(0)
-    # the lasers' offset (mm) and direction (rad) std from the calibration: their (e1, e2) blocks
-    n_las = rig.lasers.n
-    off_std, dir_std = np.zeros(n_las), np.zeros(n_las)
-    if rig_cov is not None:
-        for k in range(n_las):
-            c = np.diag(rig_cov)[laser_columns(k)]
-            off_std[k], dir_std[k] = std_of_variance(c[0] + c[1]), std_of_variance(c[2] + c[3])
+    _, dir_std = _laser_stds(rig, rig_cov)
     # every spot's ray against every laser's line: is it off its own, and on which other?
-    gaps, along, reach, near_ok = (np.zeros((0, n_las)),) * 3 + (np.zeros((0, n_las), bool),)
-    if lasers.size:
-        gaps, along, reach, near_ok = map_padded(_gaps_to_every_laser_jit, rig, rows=pixels)
-    gap_std = np.hypot(along * pixel_sigma * ray_rate[:, None], np.hypot(off_std, dir_std * reach))
-    on_line = near_ok & (gaps <= np.maximum(GAP_SIGMAS * gap_std, GAP_FLOOR_MM))
+    on_line = spots_on_lines(rig, pixels, pixel_sigma, rig_cov, ray_rate)
     own = on_line[np.arange(lasers.size), lasers] if lasers.size else np.zeros(0, bool)
     others = on_line.copy()
     others[np.arange(lasers.size), lasers] = False

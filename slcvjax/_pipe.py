@@ -9,6 +9,7 @@ spot is projected through the mirror, and only spots that are really visible
 are written.
 """
 
+import dataclasses
 from dataclasses import dataclass
 
 import jax
@@ -129,6 +130,83 @@ def simulate_pipe(scene: PipeScene, noise: float = 0.0, seed: int = 0) -> tuple[
     return obs, np.where(ok[..., None], x, np.nan)
 
 
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+
+
+def spots_from_images(
+    folder,
+    rig: Rig,
+    pixel_sigma: float,
+    rig_cov: np.ndarray | None = None,
+    spot_sigma_mm: float | None = None,
+    axis=(0.0, 0.0, 1.0),
+) -> tuple[Observations, dict[str, list[str]]]:
+    """The laser spots of every image in ``folder`` (sorted by name), labelled by the calibrated
+    rig's laser lines: each spot takes the one laser whose line its reflected ray passes near
+    (:func:`._measure.label_by_lines`).  A spot near no line or several, and two spots taking one
+    laser, are left out and reported.  With ``spot_sigma_mm`` (the laser spot's Gaussian std on
+    the surface) each centroid is corrected for the mirror's distortion of the spot's image, the
+    surface taken across the radial direction from ``axis`` (a pipe's wall;
+    :func:`._measure.corrected_spot_pixels`).  Returns spot observations (one view per image, no
+    boards) and the problems per image name.
+    """
+    from pathlib import Path
+
+    from ._detect import find_mirror, find_spots, read_image
+    from ._io import FormatError
+    from ._measure import label_by_lines
+
+    folder = Path(folder)
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES) if folder.is_dir() else []
+    if not files:
+        raise FormatError(f"{folder}: no images ({', '.join(IMAGE_SUFFIXES)})")
+    cam = rig.camera
+    views, problems = [], {}
+    for f in files:
+        img = read_image(f, (cam.width, cam.height))
+        probs = problems.setdefault(f.name, [])
+        disc = find_mirror(img[:, :, 1].astype(float))
+        px = find_spots(img, disc) if disc is not None else np.zeros((0, 2))
+        if disc is None:
+            probs.append("no mirror disc found")
+        labels = label_by_lines(rig, px, pixel_sigma, rig_cov) if len(px) else np.zeros(0, int)
+        spots = []
+        for p, lab in zip(px, labels, strict=True):
+            at = f"spot at ({p[0]:.1f}, {p[1]:.1f})"
+            if lab < 0:
+                probs.append(f"{at} lies near no laser's line, or near several; left out")
+            elif np.sum(labels == lab) > 1:
+                probs.append(f"{at}: laser {lab} has {int(np.sum(labels == lab))} spots; left out")
+            else:
+                spots.append(SpotObs(int(lab), None, np.asarray(p, float)))
+        missing = sorted(set(range(rig.lasers.n)) - {s.laser for s in spots})
+        if missing:
+            probs.append(f"no spot for laser {', '.join(map(str, missing))}")
+        views.append(ViewObs(f.stem, {}, spots, np.zeros((0, 2))))
+    extra: dict = {"detected_from": str(folder)}
+    if spot_sigma_mm is not None:
+        from ._measure import corrected_spot_pixels
+
+        every = [s for v in views for s in v.spots]
+        lasers = np.array([s.laser for s in every], int)
+        pixels = np.array([s.pixel for s in every]).reshape(-1, 2)
+        fixed = corrected_spot_pixels(rig, lasers, pixels, spot_sigma_mm, axis)
+        for s, px in zip(every, fixed, strict=True):
+            s.pixel = px
+        extra["spot_centroids"] = {"corrected_for_the_mirror": True, "spot_sigma_mm": float(spot_sigma_mm)}
+    obs = Observations(
+        image_size=(cam.width, cam.height),
+        mirror_radius=float(rig.mirror.radius),
+        mirror_height=float(rig.mirror.height),
+        n_lasers=rig.lasers.n,
+        boards={},
+        calibration_views=[],
+        views=views,
+        extra=extra,
+    )
+    return obs, problems
+
+
 def measure_observations(
     rig: Rig, obs: Observations, pixel_sigma: float, rig_cov: np.ndarray | None = None
 ) -> list[ViewPoints]:
@@ -174,8 +252,13 @@ def pipe_experiment(
     pixel_sigma: float | None = None,
     rig_cov: np.ndarray | None = None,
     axis=(0.0, 0.0, 1.0),
+    observed: Observations | None = None,
 ) -> dict:
     """Simulate the pipe scene with its true rig, measure with ``rig`` (e.g. a calibration).
+
+    ``observed``: the spots to measure instead of simulated ones (one view per pose, in the
+    scene's order: those detected in its rendered images, :func:`spots_from_images`); the
+    truth is still the scene's.
 
     The circles are fitted across ``axis`` (the camera's z axis, as in the paper),
     from the points that are not nearly parallel to their rays.  Returns per pose
@@ -185,6 +268,11 @@ def pipe_experiment(
     (over the points used).
     """
     obs, truth = simulate_pipe(scene, noise=noise, seed=seed)
+    if observed is not None:
+        if len(observed.views) != len(obs.views):
+            raise ValueError(f"{len(observed.views)} observed views for a pipe scene of {len(obs.views)} poses")
+        # the scene's truth goes with the observed spots (for the plots and the points file)
+        obs = dataclasses.replace(observed, extra={**observed.extra, "simulation": obs.extra["simulation"]})
     sigma = noise if pixel_sigma is None else pixel_sigma
     views = measure_observations(rig, obs, sigma, rig_cov)
     poses = []

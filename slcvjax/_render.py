@@ -140,6 +140,22 @@ def _cata_shade(origin, direction, valid, seen, walls_R, walls_t, dots, spots, s
     return jnp.stack([g, g, r])  # BGR
 
 
+def _pipe_shade(origin, direction, valid, seen, centre, axis, radius, spots, spot_on, opts):
+    """A sample inside a pipe: its inner wall is plain paper-white, lit by the laser spots."""
+    from ._pipe import beam_pipe_point
+
+    x, hit = beam_pipe_point(origin, direction, centre, axis, radius)
+    s2 = jnp.min(jnp.where(spot_on, jnp.sum((spots - x) ** 2, axis=1), jnp.inf))
+    laser = jnp.exp(-0.5 * jnp.minimum(s2, 1e6) / opts[1] ** 2)
+    seen = seen & hit
+    grey = MIRROR_REFLECTANCE * WALL
+    red = grey + MIRROR_REFLECTANCE * opts[2] * laser
+    mirror_px = jnp.where(valid, BODY, BACKGROUND)
+    g = jnp.where(seen, grey, mirror_px)
+    r = jnp.where(seen, red, mirror_px)
+    return jnp.stack([g, g, r])  # BGR
+
+
 def _chess_sample(d, ok, R, t, cols, rows, square):
     x, ahead = line_plane_intersection(jnp.zeros(3), d, Pose(R, t))
     xy = (R.T @ (x - t))[:2]
@@ -163,6 +179,12 @@ def _cata_rays(cam, mirror, samples, body):
 @jax.jit
 def _cata_band(rays, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts):
     f = lambda o, d, v, s: _cata_shade(o, d, v, s, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts)  # noqa: E731
+    return jax.lax.map(lambda r: jax.vmap(f)(*r), rays)
+
+
+@jax.jit
+def _pipe_band(rays, centre, axis, radius, spots, spot_on, opts):
+    f = lambda o, d, v, s: _pipe_shade(o, d, v, s, centre, axis, radius, spots, spot_on, opts)  # noqa: E731
     return jax.lax.map(lambda r: jax.vmap(f)(*r), rays)
 
 
@@ -259,6 +281,23 @@ class Renderer:
         out = _cata_band(
             self._rays, walls_R, walls_t, jnp.asarray(dots), jnp.asarray(spot_xyz),
             jnp.asarray(spot_wall), jnp.asarray(spot_wall >= 0), opts,
+        )  # fmt: skip
+        return _finish(self._average(out), o, seed)
+
+    def pipe(self, centre, axis, radius: float, spots: np.ndarray, seed: int = 0) -> np.ndarray:
+        """One catadioptric image from inside a straight pipe (BGR uint8): the pipe's axis through
+        ``centre`` along the unit ``axis`` (camera frame, mm), its inner ``radius`` (mm), and the
+        laser spots' 3D points on its wall (S, 3)."""
+        if self._rays is None:
+            raise ValueError("this renderer has no mirror; it renders direct views only")
+        spots = np.asarray(spots, float).reshape(-1, 3)
+        spot_xyz = np.full((max(len(spots), 1), 3), 1e9)
+        spot_xyz[: len(spots)] = spots
+        o = self.opts
+        opts = jnp.asarray([o.dot_radius_mm, o.spot_sigma_mm, o.spot_power], dtype=float)
+        out = _pipe_band(
+            self._rays, jnp.asarray(centre, float), jnp.asarray(axis, float), jnp.asarray(float(radius)),
+            jnp.asarray(spot_xyz), jnp.arange(len(spot_xyz)) < len(spots), opts,
         )  # fmt: skip
         return _finish(self._average(out), o, seed)
 
@@ -364,3 +403,37 @@ def render_scene(scene, out_dir, opts: RenderOptions = RenderOptions(), progress
             raise OSError(f"{out / name}: could not write the image")
     write_json_atomic(out / "setup.json", setup_to_json(scene_setup(scene, names, chess_names)))
     return names + chess_names
+
+
+def render_pipe(scene, out_dir, opts: RenderOptions = RenderOptions(), progress: bool = False) -> list[str]:
+    """Render every pose of a pipe scene (:class:`._pipe.PipeScene`) into ``out_dir``: one PNG per
+    pose (``pipe00.png``, ...), image ``k`` with noise seed ``opts.seed + k``; returns the names.
+
+    The pipe's inner wall is the only surface; every beam lights its spot where it meets the
+    wall.  No setup is written: the spots are labelled by a calibration's laser lines when
+    measured (``slcvjax measure CAL IMAGE_DIR``).
+    """
+    from pathlib import Path
+
+    from ._pipe import beam_pipe_point
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rig = scene.rig
+    renderer = Renderer(rig.camera, rig.mirror, opts)
+    hit = jax.jit(jax.vmap(beam_pipe_point, in_axes=(0, 0, None, None, None)))
+    poses = range(len(scene.centers))
+    if progress:
+        from tqdm import tqdm
+
+        poses = tqdm(poses, desc="render pipe", unit="image", leave=False)
+    names = []
+    for i in poses:
+        x, ok = hit(rig.lasers.points, rig.lasers.directions, scene.centers[i], scene.axes[i], scene.diameter / 2)
+        spots = np.asarray(x)[np.asarray(ok)]
+        img = renderer.pipe(scene.centers[i], scene.axes[i], scene.diameter / 2, spots, opts.seed + i)
+        name = f"pipe{i:02d}.png"
+        if not cv2.imwrite(str(out / name), img):
+            raise OSError(f"{out / name}: could not write the image")
+        names.append(name)
+    return names

@@ -36,6 +36,8 @@ def _summary(obs, truth) -> str:
 def _cmd_simulate(args) -> int:
     from ._simulate import make_scene, simulate
 
+    if args.pipe is not None:
+        return _simulate_pipe(args)
     t0 = time.perf_counter()
     scene = make_scene(args.preset, n_lasers=args.lasers, n_views=args.views)
     obs, truth = simulate(scene, noise=args.noise, seed=args.seed)
@@ -51,6 +53,30 @@ def _cmd_simulate(args) -> int:
         t1 = time.perf_counter()
         files = render_scene(scene, out / "images", opts, progress=sys.stderr.isatty())
         print(f"wrote {len(files)} images and {out / 'images' / 'setup.json'} ({time.perf_counter() - t1:.1f} s)")
+    return 0
+
+
+def _simulate_pipe(args) -> int:
+    """``simulate --pipe D``: the preset's rig inside a pipe, its spots (and images with --render)."""
+    from ._pipe import pipe_scene, simulate_pipe
+    from ._simulate import make_scene
+
+    t0 = time.perf_counter()
+    rig = make_scene(args.preset, n_lasers=args.lasers, n_views=1).rig
+    scene = pipe_scene(rig, args.pipe, args.views, seed=args.seed)
+    obs, _ = simulate_pipe(scene, noise=args.noise, seed=args.seed)
+    out = Path(args.out)
+    write_observations(out / "pipe_observations.json", obs)
+    n = sum(len(v.spots) for v in obs.views)
+    print(f"pipe {args.pipe:g} mm, {len(obs.views)} poses, {n} spots; the pipe's truth in extra.simulation.pipe")
+    print(f"wrote {out / 'pipe_observations.json'} ({time.perf_counter() - t0:.1f} s)")
+    if args.render:
+        from ._render import RenderOptions, render_pipe
+
+        opts = RenderOptions(noise=args.image_noise, blur=args.blur, exposure=args.exposure, seed=args.seed)
+        t1 = time.perf_counter()
+        files = render_pipe(scene, out / "pipe_images", opts, progress=sys.stderr.isatty())
+        print(f"wrote {len(files)} images in {out / 'pipe_images'} ({time.perf_counter() - t1:.1f} s)")
     return 0
 
 
@@ -173,14 +199,33 @@ def _cmd_demo(args) -> int:
     if images:
         img = read_image(out / "images" / f"{obs.views[v0].name}.png", tuple(obs.image_size))
         plots.append(plot_detections(img, obs.views[v0], reprojections(cal, obs, v0), out / "detections.png").name)
-    print(f"[{next(step)}/{steps}] measure: the sensor in a 150 mm pipe at 16 poses, {args.noise:g} px, "
-          "with this calibration", flush=True)  # fmt: skip
-    from ._pipe import measurement_inputs, pipe_experiment, pipe_scene
+    from ._pipe import measurement_inputs, pipe_experiment, pipe_scene, spots_from_images
 
     t2 = time.perf_counter()
-    _, rig_cov = measurement_inputs("calibration.json", cal)
-    pipe = pipe_experiment(res.rig, pipe_scene(truth.rig, seed=args.seed), args.noise, args.seed, rig_cov=rig_cov)
-    pipe_files = _write_pipe(out, pipe, "pipe_points.json", args.noise)
+    sigma_cal, rig_cov = measurement_inputs("calibration.json", cal)
+    pipe_sc = pipe_scene(truth.rig, seed=args.seed)
+    if images:
+        from ._render import render_pipe
+
+        print(f"[{next(step)}/{steps}] measure: the sensor rendered in a 150 mm pipe at 16 poses, its spots "
+              "detected and labelled by this calibration's laser lines", flush=True)  # fmt: skip
+        render_pipe(pipe_sc, out / "pipe_images", opts, progress=sys.stderr.isatty())
+        # the demo knows its laser's spot size (the renderer's): the centroids are corrected for it
+        observed, problems = spots_from_images(
+            out / "pipe_images", res.rig, sigma_cal, rig_cov, spot_sigma_mm=opts.spot_sigma_mm
+        )
+        for name, probs in ((k, v) for k, v in problems.items() if v):
+            print(f"  {name}: " + "; ".join(probs))
+        pipe = pipe_experiment(
+            res.rig, pipe_sc, args.noise, args.seed, pixel_sigma=sigma_cal, rig_cov=rig_cov, observed=observed
+        )
+        pixel_note = sigma_cal
+    else:
+        print(f"[{next(step)}/{steps}] measure: the sensor in a 150 mm pipe at 16 poses, {args.noise:g} px, "
+              "with this calibration", flush=True)  # fmt: skip
+        pipe = pipe_experiment(res.rig, pipe_sc, args.noise, args.seed, rig_cov=rig_cov)
+        pixel_note = args.noise
+    pipe_files = _write_pipe(out, pipe, "pipe_points.json", pixel_note)
     _pipe_report(pipe)
     timings["pipe"] = time.perf_counter() - t2
     print(
@@ -190,7 +235,7 @@ def _cmd_demo(args) -> int:
     )
     files = ["observations.json", "truth.json"]
     files += ["images/", "detected.json", "detection_report.txt"] if images else []
-    files += ["calibration.json"] + plots + pipe_files
+    files += ["calibration.json"] + plots + (["pipe_images/"] if images else []) + pipe_files
     print(f"wrote {out}/ ({', '.join(files)})")
     return 0
 
@@ -386,7 +431,18 @@ def _cmd_measure(args) -> int:
     sigma = args.pixel_sigma if args.pixel_sigma is not None else sigma_cal
     if sigma is None:
         raise ValueError(f"{args.calibration}: residuals: no residual sigma to use; give --pixel-sigma")
-    obs = read_observations(args.input)
+    if Path(args.input).is_dir():
+        from ._pipe import spots_from_images
+
+        obs, problems = spots_from_images(args.input, cal.rig, sigma, cov, args.spot_mm, _parse_axis(args.axis))
+        bad = {k: v for k, v in problems.items() if v}
+        n = sum(len(v.spots) for v in obs.views)
+        print(f"{args.input}: {n} spots in {len(obs.views)} images, labelled by the calibration's laser lines"
+              + (f", centroids corrected for a {args.spot_mm:g} mm spot" if args.spot_mm else ""))  # fmt: skip
+        for name, probs in bad.items():
+            print(f"  {name}: " + "; ".join(probs))
+    else:
+        obs = read_observations(args.input)
     if obs.n_lasers != cal.rig.lasers.n:
         raise ValueError(
             f"{args.input}: n_lasers: {obs.n_lasers}, but the calibration {args.calibration} has "
@@ -601,6 +657,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--views", type=int, default=16, help="number of catadioptric views (default 16)")
     s.add_argument("--out", required=True, help="output directory")
     s.add_argument("--render", action="store_true", help="also render DIR/images/ (PNG per view) and setup.json")
+    s.add_argument(
+        "--pipe",
+        type=float,
+        default=None,
+        metavar="D",
+        help="instead: the rig inside a pipe of inner diameter D mm at --views poses (DIR/pipe_observations.json; "
+        "--render: DIR/pipe_images/)",
+    )
     s.add_argument("--image-noise", type=float, default=1.0, help="sensor noise of rendered images, grey levels")
     s.add_argument("--blur", type=float, default=0.6, help="optical blur of rendered images, px (default 0.6)")
     s.add_argument("--exposure", type=float, default=1.0, help="exposure gain of rendered images (default 1)")
@@ -631,11 +695,22 @@ def build_parser() -> argparse.ArgumentParser:
 
     m = sub.add_parser("measure", help="3D laser points (and pipe circles) from spots with a calibration")
     m.add_argument("calibration", help="slcv-calibration/1 file")
-    m.add_argument("input", help="slcv-observations/1 file whose views carry spots (their board may be absent)")
+    m.add_argument(
+        "input",
+        help="slcv-observations/1 file whose views carry spots (their board may be absent), or a folder of "
+        "images (each a view; spots labelled by the calibration's laser lines)",
+    )
     m.add_argument("--out", required=True, help="output slcv-points/1 file")
     m.add_argument("--fit-circle", action="store_true", help="fit a circle per view across the axis")
     m.add_argument("--pixel-sigma", type=float, default=None, help="spot pixel noise in px (default: calibration's)")
     m.add_argument("--axis", default=None, help="pipe axis x,y,z in the camera frame (default 0,0,1)")
+    m.add_argument(
+        "--spot-mm",
+        type=float,
+        default=None,
+        help="images only: the laser spot's Gaussian std on the surface (mm); corrects each centroid for the "
+        "mirror's distortion of the spot's image (the surface taken as a pipe's wall about --axis)",
+    )
     m.set_defaults(func=_cmd_measure)
 
     w = sub.add_parser("sweep", help="noise-sensitivity sweep: Monte Carlo calibrations beside the bound")
