@@ -27,6 +27,7 @@ import numpy as np
 from ._camera import Camera, pixel_to_ray
 from ._lasers import line_plane_intersection
 from ._mirror import ConeMirror, back_project
+from ._pipe import beam_pipe_point
 from ._pose import Pose
 
 WALL = 0.72
@@ -142,8 +143,6 @@ def _cata_shade(origin, direction, valid, seen, walls_R, walls_t, dots, spots, s
 
 def _pipe_shade(origin, direction, valid, seen, centre, axis, radius, spots, spot_on, opts):
     """A sample inside a pipe: its inner wall is plain paper-white, lit by the laser spots."""
-    from ._pipe import beam_pipe_point
-
     x, hit = beam_pipe_point(origin, direction, centre, axis, radius)
     s2 = jnp.min(jnp.where(spot_on, jnp.sum((spots - x) ** 2, axis=1), jnp.inf))
     laser = jnp.exp(-0.5 * jnp.minimum(s2, 1e6) / opts[1] ** 2)
@@ -414,8 +413,6 @@ def render_pipe(scene, out_dir, opts: RenderOptions = RenderOptions(), progress:
     measured (``slcvjax measure CAL IMAGE_DIR``).
     """
     from pathlib import Path
-
-    from ._pipe import beam_pipe_point
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
