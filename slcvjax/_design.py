@@ -234,14 +234,23 @@ class Prediction:
         return float(np.degrees(np.sqrt(np.mean(self.direction_std_rad**2))))
 
     def to_json(self) -> dict:
-        return {
-            "position_rms_mm": self.position_rms_mm,
-            "direction_rms_deg": self.direction_rms_deg,
-            "position_std_mm": self.position_std_mm.tolist(),
-            "direction_std_deg": np.degrees(self.direction_std_rad).tolist(),
+        """JSON-ready; a prediction the plan cannot support (infinite: a laser without enough
+        spots) is written as null, with ``status`` saying so."""
+
+        def num(x):
+            return float(x) if np.isfinite(x) else None
+
+        out = {
+            "position_rms_mm": num(self.position_rms_mm),
+            "direction_rms_deg": num(self.direction_rms_deg),
+            "position_std_mm": [num(x) for x in self.position_std_mm],
+            "direction_std_deg": [num(x) for x in np.degrees(self.direction_std_rad)],
             "dots": self.n_dots,
             "spots": self.n_spots,
         }
+        if not np.all(np.isfinite(self.position_std_mm)):
+            out["status"] = f"undetermined: a laser is left with fewer than {MIN_SPOTS} spots"
+        return out
 
 
 _predict_jit = jax.jit(_predict, static_argnames=("n_v",))

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from ._io import FormatError, write_calibration, write_observations, write_text_atomic
-from ._simulate import PRESETS
+from ._simulate import PAPER_HALF_WIDTH, PRESETS
 
 
 def _summary(obs, truth) -> str:
@@ -732,7 +732,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     g = sub.add_parser("design", help="plan a calibration: predict the lasers' accuracy and optimise the sensor poses")
     g.add_argument("--views", type=int, default=16, help="catadioptric views (default 16)")
-    g.add_argument("--box", type=float, default=350.0, help="box width in mm (default 350, the preset's)")
+    g.add_argument(
+        "--box",
+        type=float,
+        default=2 * PAPER_HALF_WIDTH,
+        help=f"box width in mm (default {2 * PAPER_HALF_WIDTH:g}, the preset's)",
+    )
     g.add_argument(
         "--rotation", default="3,3,20", help="allowed roll,pitch,yaw of the sensor in the box, +- deg (default 3,3,20)"
     )

@@ -1,5 +1,7 @@
 """Experiment design: the predicted bound against the calibration's own bound, its gradient, the optimiser."""
 
+import json
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -73,3 +75,14 @@ def test_design_command_bad_options(tmp_path, capsys, argv, expected):
     err = capsys.readouterr().err
     assert expected in err and "Traceback" not in err
     assert not (tmp_path / "d").exists()
+
+
+def test_an_unsupported_prediction_is_written_as_null():
+    from slcvjax._design import MIN_SPOTS, Prediction
+
+    pred = Prediction(np.array([0.5, np.inf]), np.array([0.01, np.inf]), 100, 2)
+    doc = json.loads(json.dumps(pred.to_json()))
+    assert doc["position_rms_mm"] is None and doc["position_std_mm"] == [0.5, None]
+    assert str(MIN_SPOTS) in doc["status"]
+    ok = Prediction(np.array([0.5, 0.6]), np.array([0.01, 0.02]), 100, 20).to_json()
+    assert "status" not in ok and ok["position_rms_mm"] == pytest.approx(np.sqrt((0.25 + 0.36) / 2))
