@@ -152,16 +152,17 @@ def read_setup(path: str | Path) -> Setup:
 # --------------------------------------------------------------------------- images
 
 
-def read_image(path: Path, size: tuple[int, int]) -> np.ndarray:
-    """Read a colour image and check its size; raises :class:`FormatError` naming the file."""
+def read_image(path: Path, size: tuple[int, int], source: str = "setup.json") -> np.ndarray:
+    """Read a colour image and check its size against ``size`` (from ``source``); raises
+    :class:`FormatError` naming the file."""
     if not path.is_file():
-        raise FormatError(f"{path}: (file): no such image (listed in setup.json)")
+        raise FormatError(f"{path}: (file): no such image (listed in {source})")
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
         raise FormatError(f"{path}: (file): not a readable image (truncated or not PNG/JPEG?)")
     h, w = img.shape[:2]
     if (w, h) != tuple(size):
-        raise FormatError(f"{path}: (image): size {w}x{h}, setup.json says {size[0]}x{size[1]}")
+        raise FormatError(f"{path}: (image): size {w}x{h}, {source} says {size[0]}x{size[1]}")
     return img
 
 

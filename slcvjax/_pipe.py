@@ -163,7 +163,7 @@ def spots_from_images(
     cam = rig.camera
     views, problems = [], {}
     for f in files:
-        img = read_image(f, (cam.width, cam.height))
+        img = read_image(f, (cam.width, cam.height), source="the calibration's camera")
         probs = problems.setdefault(f.name, [])
         disc = find_mirror(img[:, :, 1].astype(float))
         px = find_spots(img, disc) if disc is not None else np.zeros((0, 2))

@@ -68,7 +68,7 @@ def _simulate_pipe(args) -> int:
     out = Path(args.out)
     write_observations(out / "pipe_observations.json", obs)
     n = sum(len(v.spots) for v in obs.views)
-    print(f"pipe {args.pipe:g} mm, {len(obs.views)} poses, {n} spots; the pipe's truth in extra.simulation.pipe")
+    print(f"pipe {args.pipe:g} mm, {len(obs.views)} poses, {n} spots; the pipe's truth in its simulation.pipe")
     print(f"wrote {out / 'pipe_observations.json'} ({time.perf_counter() - t0:.1f} s)")
     if args.render:
         from ._render import RenderOptions, render_pipe

@@ -84,6 +84,19 @@ def test_a_folder_without_images_is_refused(rendered, tmp_path, capsys):
     assert "no images" in capsys.readouterr().err
 
 
+def test_an_image_of_another_size_is_refused_naming_it(rendered, tmp_path, capsys):
+    import cv2
+
+    rig = rendered[0]
+    cal = tmp_path / "cal.json"
+    write_calibration(cal, Calibration(rig, extra={"residuals": {"rms_px": 0.07, "sigma_px": 0.05}}))
+    (tmp_path / "imgs").mkdir()
+    cv2.imwrite(str(tmp_path / "imgs" / "small.png"), np.zeros((40, 60, 3), np.uint8))
+    assert cli.main(["measure", str(cal), str(tmp_path / "imgs"), "--out", str(tmp_path / "p.json")]) == 2
+    err = capsys.readouterr().err
+    assert "small.png" in err and "60x40" in err and "calibration's camera" in err
+
+
 def test_simulate_places_the_sensor_in_a_pipe(tmp_path):
     argv = ["simulate", "--pipe", "140", "--views", "3", "--lasers", "6", "--render", "--image-noise", "0"]
     assert cli.main(argv + ["--out", str(tmp_path)]) == 0
