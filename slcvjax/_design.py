@@ -33,6 +33,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 
 from . import _lm
 from ._calibrate import _laser_offset
@@ -184,8 +185,9 @@ def _weights(rig: Rig, poses: Pose, pk: Packed, n_v: int):
     return w_dot, w_spot, x_ref
 
 
-def _predict(views, rig, T_bw, chess, pk, sigma, n_v):
-    """Per laser: predicted position variance (mm^2) at the working point and direction variance (rad^2)."""
+def calibration_covariance(views, rig, T_bw, chess, pk, sigma, n_v):
+    """The plan's bound on the rig's tangent (camera, mirror, lasers: ``rig.tangent_dim`` square,
+    px^2 scaled by ``sigma^2``), which dots and spots are observed, and each laser's working point."""
     poses = _poses(views, T_bw)
     # which points are seen is held while differentiating; the working points move with the poses
     w_dot, w_spot, x_ref = _weights(rig, poses, pk, n_v)
@@ -200,6 +202,12 @@ def _predict(views, rig, T_bw, chess, pk, sigma, n_v):
     masks = _lm.make_masks(params)
     ne = _lm.normal_equations(rows, w_obs[rows.obs], g, nb, masks.glob, masks.blocks)
     cov = sigma**2 * _lm.schur_inverse(ne)[0]
+    return cov, w_dot, w_spot, x_ref
+
+
+def _predict(views, rig, T_bw, chess, pk, sigma, n_v):
+    """Per laser: predicted position variance (mm^2) at the working point and direction variance (rad^2)."""
+    cov, w_dot, w_spot, x_ref = calibration_covariance(views, rig, T_bw, chess, pk, sigma, n_v)
 
     def laser(i):
         s = laser_columns(i).start  # a traced index: the block by a dynamic slice
@@ -363,9 +371,9 @@ def optimise(
 ) -> DesignResult:
     """Sensor poses within the plan's motion range that minimise the predicted laser error.
 
-    Adam on ``u`` (pose = range * tanh(u)), each step shortened until the objective,
-    re-evaluated at the new poses (visibility included), goes down, views whose visibility
-    the step changes held in place (:func:`_line_search`); where no step helps, Adam starts
+    Adam (:func:`optax.scale_by_adam`) on ``u`` (pose = range * tanh(u)), each step shortened
+    until the objective, re-evaluated at the new poses (visibility included), goes down, views
+    whose visibility the step changes held in place (:func:`_line_search`); where no step helps, Adam starts
     afresh once.  Stops after ``steps`` accepted steps or when a fresh start does not help.
     """
     t0 = time.perf_counter()
@@ -377,27 +385,24 @@ def optimise(
     f, grad = c.value_and_grad(u, ref_pos, ref_ang, pw)
     t_compile = time.perf_counter() - t0
     history = [float(f)]
-    m, v = jnp.zeros_like(u), jnp.zeros_like(u)
-    b1, b2 = 0.9, 0.999
+    adam = optax.scale_by_adam(b1=0.9, b2=0.999, eps=1e-12)
+    state = adam.init(u)
     bar = None
     if progress:
         from tqdm import tqdm
 
         bar = tqdm(total=steps, desc="design", unit="step")
     lr = learning_rate
-    k = 0  # Adam's step count since its last restart
     restarted = False
     while len(history) <= steps:
-        k += 1
-        m = b1 * m + (1 - b1) * grad
-        v = b2 * v + (1 - b2) * grad**2
-        step = (m / (1 - b1**k)) / (jnp.sqrt(v / (1 - b2**k)) + 1e-12)
+        with jax.numpy_dtype_promotion("standard"):  # optax mixes an int32 count into float powers
+            step, state = adam.update(grad, state)
         u_new, f_new, lr_used = _line_search(c, u, step, lr, history[-1], ref_pos, ref_ang, pw)
         if u_new is None:
             if restarted:
                 break
             # stuck: the moments carried the poses against a visibility edge; start Adam afresh
-            m, v, k, lr, restarted = jnp.zeros_like(u), jnp.zeros_like(u), 0, learning_rate, True
+            state, lr, restarted = adam.init(u), learning_rate, True
             continue
         restarted = False
         if bar is not None:

@@ -580,6 +580,8 @@ def _cmd_design(args) -> int:
     start = base * np.where(preset.scale > 0, np.concatenate([rot, tra]) / preset.scale, 0.0)
     scene = box_scene(rig, start, args.box / 2.0)
     plan = Plan.from_scene(scene, start, noise=args.noise, rotation_range=rot, translation_range=tra)
+    if args.measure:
+        return _design_lasers(args, plan)
     print(
         f"design: {args.views} views in a {args.box:g} mm box, motion +-{np.degrees(rot).round(2).tolist()} deg, "
         f"+-{tra.tolist()} mm, {args.noise} px (compiling the bound's gradient takes about 30 s)",
@@ -615,6 +617,72 @@ def _cmd_design(args) -> int:
     png = plot_design(res, out / "design.png")
     print(f"wrote {out / 'design.json'}, {png}")
     return 0
+
+
+def _design_lasers(args, plan) -> int:
+    from ._io import write_json_atomic
+    from ._laser_design import MeasurePlan, confirm_lasers, laser_design_document, optimise_lasers, plot_laser_design
+
+    diameters = _parse_numbers(args.diameters, "diameters")
+    mp = MeasurePlan(
+        plan, diameters, elevation_range_deg=args.elevation_range, ring_radius_range_mm=args.ring_radius_range,
+        ring_z_range_mm=args.ring_z_range,
+    )  # fmt: skip
+    print(
+        f"laser design for pipes of {', '.join(f'{x:g}' for x in diameters)} mm: elevations +-{args.elevation_range:g} "
+        f"deg, ring radius +-{args.ring_radius_range:g} mm, height +-{args.ring_z_range:g} mm "
+        "(compiling the prediction and its gradient takes about a minute)",
+        flush=True,
+    )
+    res = optimise_lasers(mp, steps=args.steps, progress=sys.stderr.isatty())
+    print("pipe mm    predicted diameter std mm (before -> after)   spots seen   smallest beam-ray angle deg")
+    b, a = res.predicted_before, res.predicted_after
+    for k, d in enumerate(diameters):
+        std_b = "not measurable" if not np.isfinite(b.diameter_std_mm[k]) else f"{b.diameter_std_mm[k]:.3f}"
+        std_a = "not measurable" if not np.isfinite(a.diameter_std_mm[k]) else f"{a.diameter_std_mm[k]:.3f}"
+        print(
+            f"{d:7g}    {std_b:>14s} -> {std_a:<14s}                  {b.spots_seen[k]:2d} -> {a.spots_seen[k]:2d}"
+            f"      {_fmt_finite(b.min_angle_deg[k])} -> {_fmt_finite(a.min_angle_deg[k])}"
+        )
+    if not res.feasible:
+        print(
+            "no mounting in the range sees every spot in every pipe and keeps the lasers on the calibration walls: "
+            "widen the range (--ring-z-range, --elevation-range) or narrow the pipes (--diameters); "
+            "the mounting that sees the most spots is written"
+        )
+    confirmed = None
+    if args.confirm:
+        print(f"confirming by simulation: {args.confirm} calibrations of each mounting, each measuring every pipe")
+        confirmed = {}
+        for name, rig in (("before", res.rig_before), ("after", res.rig_after)):
+            c = confirm_lasers(mp, rig, args.confirm, args.seed, progress=sys.stderr.isatty())
+            confirmed[name] = c
+            errs = ", ".join(_fmt(x) for x in c["diameter_error_rms_mm"])
+            print(
+                f"  {name:6s} simulated rms diameter error mm: {errs}"
+                + (f" ({c['failed']} could not be calibrated: {c['first_failure']})" if c["failed"] else ""),
+                flush=True,
+            )
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(out / "laser_design.json", laser_design_document(res, confirmed))
+    png = plot_laser_design(res, out / "laser_design.png", confirmed)
+    print(f"wrote {out / 'laser_design.json'}, {png}")
+    return 0 if res.feasible else 1
+
+
+def _fmt_finite(x, nd=1, width=5):
+    return f"{x:{width}.{nd}f}" if np.isfinite(x) else f"{'-':>{width}s}"
+
+
+def _parse_numbers(text: str, name: str) -> np.ndarray:
+    try:
+        vals = np.array([float(x) for x in text.split(",")])
+    except ValueError:
+        raise ValueError(f"--{name}: expected comma-separated numbers, got {text!r}") from None
+    if vals.size < 1 or not np.all(np.isfinite(vals)) or np.any(vals <= 0):
+        raise ValueError(f"--{name}: expected positive numbers, got {text!r}")
+    return vals
 
 
 def _cmd_pipe(args) -> int:
@@ -748,6 +816,17 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument(
         "--position-weight", type=float, default=0.5, help="weight of the position error beside the direction's (0.5)"
     )
+    g.add_argument(
+        "--measure",
+        action="store_true",
+        help="design the lasers (elevations, ring radius and height) for measuring pipes instead of the poses",
+    )
+    g.add_argument(
+        "--diameters", default="100,150,200,250,300", help="with --measure: the pipes in mm (default 100,...,300)"
+    )
+    g.add_argument("--elevation-range", type=float, default=20.0, help="with --measure: +- deg per beam (20)")
+    g.add_argument("--ring-radius-range", type=float, default=10.0, help="with --measure: +- mm (10)")
+    g.add_argument("--ring-z-range", type=float, default=25.0, help="with --measure: +- mm along the axis (25)")
     g.add_argument("--confirm", type=int, default=0, help="simulate and calibrate each plan N times")
     g.add_argument("--seed", type=int, default=0, help="first seed of the confirmation")
     g.add_argument("--out", default="slcvjax-design", help="output directory (default ./slcvjax-design)")
