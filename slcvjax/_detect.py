@@ -258,15 +258,22 @@ def _weighted_centroids(weight: np.ndarray, labels: np.ndarray, ids: list[int], 
     return np.array(out).reshape(-1, 2)
 
 
-def find_dots(green: np.ndarray, disc: MirrorDisc, edge: int = 4) -> np.ndarray:
+DOT_CONTRAST = 0.3  # a dot's pixel: below the wall by this fraction of the wall-to-darkest contrast
+ROW_EVIDENCE = 0.15  # darker than the local wall by this fraction: something lies where a row would
+
+
+def find_dots(green: np.ndarray, disc: MirrorDisc, edge: int = 4, contrast: float = DOT_CONTRAST) -> np.ndarray:
     """Dark dots inside the mirror's disc: (K, 2) darkness-weighted centroids.
 
-    A region counts when it lies at least ``edge`` px inside the disc's outline,
-    is not the image centre's dark body (regions holding the ellipse centre or
-    larger than 2 % of the disc are skipped) and has at least 3 pixels.
+    A pixel is dark when it lies below the wall's level by ``contrast`` of the way to the
+    darkest level (near the apex the cone squeezes a dot into a thin streak that the blur
+    lightens to about half the full contrast). A region counts when it lies at least ``edge`` px
+    inside the disc's outline, is not the image centre's dark body (regions holding the
+    ellipse centre or larger than 2 % of the disc are skipped) and has at least 3 pixels.
     """
     wall = disc.inside_level
-    dark_level = 0.5 * (wall + min(disc.outside_level, float(np.percentile(green[disc.mask], 1))))
+    darkest = min(disc.outside_level, float(np.percentile(green[disc.mask], 1)))
+    dark_level = wall - contrast * (wall - darkest)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * edge + 1, 2 * edge + 1))
     core = cv2.erode(disc.mask.astype(np.uint8), kernel).astype(bool)
     dark = ((green < dark_level) & disc.mask).astype(np.uint8)
@@ -336,23 +343,26 @@ def _order_grid(
     disc_radius: float | None = None,
     dead_zone: float = 0.3,
     rim_margin: float = 25.0,
-) -> tuple[np.ndarray, np.ndarray, bool] | None:
-    """Place one board's dots on its grid: (pixels (M, 2), seen (M,), row shift assumed?), or None.
+    probe=None,
+) -> tuple[np.ndarray, np.ndarray] | str | None:
+    """Place one board's dots on its grid: (pixels (M, 2), seen (M,)); None where they do not
+    form the grid, or a reason where a whole row is missing and the evidence cannot say which.
 
     Through a cone mirror a wall's columns (lines across the axis's direction)
     image as nearly radial lines, so the dots are split into ``cols`` azimuth
     groups (each gap wider than 3x the groups' own spread), and each column is
     ordered by image radius.  A column with missing dots takes its rows from the
     fullest columns' radii, interpolated in azimuth; a dot must fall within 0.3
-    row spacings of its row.  One whole missing row is placed only where it
-    would be out of sight on one side and not on the other: the fullest columns
-    extended by one row spacing reach inside ``dead_zone`` of the disc's radius
-    (near the apex the image is squeezed and the sensor's own reflection sits) or
-    beyond the rim less ``rim_margin`` px (dots there are cut); otherwise nothing is
-    placed.
+    row spacings of its row.  One whole missing row is placed only where the evidence says
+    on which side it lies: the fullest columns extended by one row spacing reach inside
+    ``dead_zone`` of the disc's radius (near the apex the image is squeezed and the sensor's
+    own reflection sits) or beyond the rim less ``rim_margin`` px (dots there are cut) on that
+    side only, and ``probe`` (see :func:`_darkness_probe`), when given, finds nothing dark
+    where the row would lie on the other side (a row there, seen but too faint to be
+    detected, would mean the other placement).  Where both sides would be out of sight the
+    image cannot tell which row is missing: nothing is placed, and the reason is returned.
     """
     cols, rows = layout.cols, layout.rows
-    assumed = False
     if len(px) < cols or len(px) > cols * rows:
         return None
     a = _wrap(azimuth_deg(px, centre) - _circular_mean_deg(azimuth_deg(px, centre)))
@@ -385,12 +395,19 @@ def _order_grid(
         if (not hidden_in and not hidden_out) or rows - m > 1:
             return None
         if hidden_in and hidden_out:
-            # both neighbours would be out of sight: the image cannot tell which row is missing.  The
-            # inner one is assumed (near the apex is where rows vanish); a wrong guess shifts the labels
-            # by one row, which moves the board's frame within its plane: the plane, and so the spots'
-            # geometry and the rig's calibration, are the same.  The board is reported as assumed.
-            hidden_out = False
-            assumed = True
+            return "a whole row is hidden and either neighbouring row could be it (ambiguous rows)"
+        if probe is not None:
+            # the side said to hold no row must show nothing where one would lie
+            a0 = _circular_mean_deg(azimuth_deg(px, centre))
+            col_az_abs = [a0 + float(np.mean(a[groups[k]])) for k in full]
+            if hidden_in:  # the row beyond the outer one must be absent
+                edge, step_next = outer, step_out
+            else:
+                edge, step_next = inner, -step_in
+            if any(
+                probe(az, r0 + 0.5 * s, r0 + 1.5 * s) for az, r0, s in zip(col_az_abs, edge, step_next, strict=True)
+            ):
+                return "a whole row is missing and the image shows something on both sides (ambiguous rows)"
         # grid row 0 comes first in the columns' order: it is the inner row when y grows outwards
         first = 1 if hidden_in == (layout.y_dir > 0) else 0
     col_az = np.array([np.mean(a[g]) for g in groups])
@@ -418,7 +435,39 @@ def _order_grid(
         for i, j in zip(g, rows_of, strict=True):
             out[j * cols + k] = px[i]
             seen[j * cols + k] = True
-    return out, seen, assumed
+    return out, seen
+
+
+def _darkness_probe(green: np.ndarray, disc: MirrorDisc):
+    """``probe(azimuth_deg, r0, r1)``: whether the image is darker than the wall by ``ROW_EVIDENCE``
+    of the dots' contrast anywhere along the radial segment from image radius ``r0`` to ``r1``
+    (within 2 px across it), 4 px or more inside the mirror's disc; the centre's dark body never counts."""
+    wall = disc.inside_level
+    darkest = min(disc.outside_level, float(np.percentile(green[disc.mask], 1)))
+    level = wall - ROW_EVIDENCE * (wall - darkest)
+    core = cv2.erode(disc.mask.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)  # not the rim's edge
+    dark = (green < level) & core
+    # the sensor's own reflection: the dark region holding the disc's centre, and a margin round it
+    n, labels = cv2.connectedComponents(dark.astype(np.uint8), connectivity=8)
+    cu, cv_ = (int(round(c)) for c in disc.centre)
+    if 0 <= cv_ < dark.shape[0] and 0 <= cu < dark.shape[1] and labels[cv_, cu] > 0:
+        body = cv2.dilate((labels == labels[cv_, cu]).astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
+        dark &= ~body
+    h, w = dark.shape
+
+    def probe(az_deg: float, r0: float, r1: float) -> bool:
+        lo, hi = sorted((max(r0, 0.0), max(r1, 0.0)))
+        th = np.radians(az_deg)
+        e, n_ = np.array([np.cos(th), np.sin(th)]), np.array([-np.sin(th), np.cos(th)])
+        for r in np.arange(lo, hi + 0.5, 0.5):
+            for off in (-2.0, -1.0, 0.0, 1.0, 2.0):
+                u, v = disc.centre + r * e + off * n_
+                iu, iv = int(round(u)), int(round(v))
+                if 0 <= iv < h and 0 <= iu < w and dark[iv, iu]:
+                    return True
+        return False
+
+    return probe
 
 
 def _split_by_azimuth(az: np.ndarray, k: int) -> list[np.ndarray]:
@@ -448,6 +497,7 @@ class ImageDetection:
     rim: np.ndarray
     dots: np.ndarray
     spots: np.ndarray
+    green: np.ndarray | None = None  # the image's green channel, for evidence where dots were not found
 
 
 def detect_catadioptric(bgr: np.ndarray, name: str = "") -> ImageDetection:
@@ -456,7 +506,7 @@ def detect_catadioptric(bgr: np.ndarray, name: str = "") -> ImageDetection:
     disc = find_mirror(green)
     if disc is None:
         return ImageDetection(name, None, np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2)))
-    return ImageDetection(name, disc, find_rim(green, disc), find_dots(green, disc), find_spots(bgr, disc))
+    return ImageDetection(name, disc, find_rim(green, disc), find_dots(green, disc), find_spots(bgr, disc), green)
 
 
 def label_boards(det: ImageDetection, setup: Setup) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], list[str]]:
@@ -480,14 +530,18 @@ def label_boards(det: ImageDetection, setup: Setup) -> tuple[dict[str, tuple[np.
             problems.append(f"{len(groups[gi])} dots near azimuth {means[gi] % 360:.0f} deg match no single target")
             continue
         used[j] = gi
-        got = _order_grid(det.dots[groups[gi]], det.disc.centre, walls[name], float(np.mean(det.disc.axes)))
+        probe = None if det.green is None else _darkness_probe(det.green, det.disc)
+        got = _order_grid(
+            det.dots[groups[gi]], det.disc.centre, walls[name], float(np.mean(det.disc.axes)), probe=probe
+        )
+        if isinstance(got, str):
+            problems.append(f"{name}: {got}; board left out")
+            continue
         if got is None:
             problems.append(f"{name}: {len(groups[gi])} dots could not be placed on the grid; board left out")
             continue
-        px, seen, shifted = got
+        px, seen = got
         out[name] = (px, seen)
-        if shifted:
-            problems.append(f"{name}: a whole row is hidden; taken as the one nearest the apex (row shift assumed)")
         if not seen.all():
             problems.append(f"{name}: {int(seen.sum())} of {len(seen)} dots found")
     for j, name in enumerate(names):
@@ -617,7 +671,7 @@ class DetectionReport:
         probs = [p for ps in self.problems.values() for p in ps]
         kinds = {
             "boards left out": sum("board left out" in p for p in probs),
-            "row shifts assumed": sum("row shift assumed" in p for p in probs),
+            "ambiguous rows": sum("ambiguous rows" in p for p in probs),
             "missing spots": sum(p.count(",") + 1 for p in probs if p.startswith("no spot for laser")),
             "spots left out": sum(p.endswith("left out") and ("spot" in p) for p in probs),
         }

@@ -9,11 +9,20 @@ import numpy as np
 import pytest
 
 from slcvjax._calibrate import calibrate, cramer_rao, laser_errors
-from slcvjax._detect import detect_folder, read_setup
+from slcvjax._detect import BoardLayout, _order_grid, detect_folder, read_setup
 from slcvjax._io import FormatError
 from slcvjax._render import RenderOptions, render_scene
 from slcvjax._rig import project_rim
-from slcvjax._simulate import make_scene, simulate, visible_spots
+from slcvjax._simulate import (
+    PAPER_ROTATION_DEG,
+    PAPER_TRANSLATION_MM,
+    box_scene,
+    grid_points,
+    make_scene,
+    paper_rig,
+    simulate,
+    visible_spots,
+)
 from slcvjax.cli import main
 
 NOISE_FREE = RenderOptions(noise=0.0)
@@ -30,13 +39,10 @@ def rendered(tmp_path_factory):
     return scene, folder, exact, truth, obs, report
 
 
-def _row_shift_assumed(report, view, board):
-    return any(board in p and "row shift assumed" in p for p in report.problems.get(view, []))
-
-
-def test_dots_are_accurate_and_placed_on_their_grid(rendered):
-    _, _, exact, _, obs, report = rendered
-    errors, boards, shifted = [], 0, 0
+def _mislabelled(obs, exact) -> tuple[int, list]:
+    """Boards placed, and those with a dot labelled as another: nearer another dot's true
+    projection than its own's, or more than 3 px from its own (a row or column off)."""
+    boards, wrong = 0, []
     for vd, vt in zip(obs.views, exact.views, strict=True):
         for b, (px_t, seen_t) in vt.boards.items():
             px_d, seen_d = vd.boards[b]
@@ -44,28 +50,66 @@ def test_dots_are_accurate_and_placed_on_their_grid(rendered):
                 continue
             boards += 1
             idx = np.flatnonzero(seen_d)
-            exact_fit = seen_t[idx].all() and np.all(np.linalg.norm(px_d[idx] - px_t[idx], axis=1) < 1.0)
-            if exact_fit:
-                errors.extend(np.linalg.norm(px_d[idx] - px_t[idx], axis=1))
-                continue
-            # only a board reported as "row shift assumed" may be off, and then by exactly one grid row
-            assert _row_shift_assumed(report, vd.name, b), (vd.name, b)
-            cols = 3
-            ok = any(
-                (idx + s).min() >= 0
-                and (idx + s).max() < len(seen_t)
-                and seen_t[idx + s].all()
-                and np.all(np.linalg.norm(px_d[idx] - px_t[idx + s], axis=1) < 1.0)
-                for s in (cols, -cols)
-            )
-            assert ok, (vd.name, b)
-            shifted += 1
-    errors = np.array(errors)
-    assert boards >= 32  # half the 64 wall images at least
-    assert shifted <= boards // 4
-    # measured 0.100 px on this preset: a dot's centroid through the cone is not the image of its centre
-    assert np.sqrt(np.mean(errors**2)) < 0.12
-    assert errors.max() < 0.7  # 0.56 px on this preset
+            dist = np.linalg.norm(px_d[idx, None, :] - px_t[None, :, :], axis=2)
+            dist[:, ~seen_t] = np.inf
+            own = dist[np.arange(idx.size), idx]
+            if not (np.all(np.argmin(dist, axis=1) == idx) and np.all(own < 3.0)):
+                wrong.append((vd.name, b))
+    return boards, wrong
+
+
+def test_dots_are_accurate_and_placed_on_their_grid(rendered):
+    _, _, exact, _, obs, _ = rendered
+    boards, wrong = _mislabelled(obs, exact)
+    assert wrong == []  # no dot labelled as another: an ambiguous grid is left out, never guessed
+    assert boards >= 40  # of the 64 wall images (measured 45)
+    errors = np.concatenate(
+        [
+            np.linalg.norm(vd.boards[b][0][vd.boards[b][1]] - vt.boards[b][0][vd.boards[b][1]], axis=1)
+            for vd, vt in zip(obs.views, exact.views, strict=True)
+            for b in vt.boards
+        ]
+    )
+    # a dot's centroid through the cone is not the image of its centre
+    assert np.sqrt(np.mean(errors**2)) < 0.12  # measured 0.095 px
+    assert errors.max() < 0.7  # measured 0.36 px
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [5, 6])
+def test_no_dot_is_labelled_as_another_on_other_sensor_poses(tmp_path, seed):
+    """Other sensor poses in the box (drawn within the preset's motion range), rendered with
+    sensor noise: every placed board's dots against the true projections of their labels."""
+    rng = np.random.default_rng(seed)
+    rot, tra = np.asarray(PAPER_ROTATION_DEG), np.asarray(PAPER_TRANSLATION_MM)
+    views = np.concatenate([np.radians(rng.uniform(-rot, rot, (8, 3))), rng.uniform(-tra, tra, (8, 3))], axis=1)
+    scene = box_scene(paper_rig(), views, n_chess_views=2)
+    render_scene(scene, tmp_path / "images", RenderOptions(noise=1.0, seed=seed))
+    exact, _ = simulate(scene)
+    obs, _ = detect_folder(tmp_path / "images")
+    boards, wrong = _mislabelled(obs, exact)
+    assert wrong == []
+    assert boards >= 20  # of the 32 wall images
+
+
+def test_a_missing_row_is_placed_only_on_evidence():
+    """Two rows of a 3x3 target seen; the row beyond the inner one would lie in the squeezed zone
+    near the apex, the one beyond the outer one in plain sight."""
+    layout = BoardLayout(grid_points(3, 3, 10.0), 3, 3, azimuth_deg=0.0, x_dir=1, y_dir=1)
+    az = np.radians([-10.0, 0.0, 10.0])
+    px = np.array([[r * np.cos(a), r * np.sin(a)] for r in (75.0, 95.0) for a in az])
+    centre = np.zeros(2)
+    placed = _order_grid(px, centre, layout, 200.0, probe=lambda az, r0, r1: False)
+    # the inner row is the hidden one: the seen rows are grid rows 1 and 2
+    np.testing.assert_array_equal(placed[1], np.r_[np.zeros(3, bool), np.ones(6, bool)])
+    probed = []
+    got = _order_grid(px, centre, layout, 200.0, probe=lambda az, r0, r1: probed.append((r0, r1)) or True)
+    assert isinstance(got, str) and "ambiguous rows" in got  # something dark where the outer row would be
+    assert all(95.0 < r0 < r1 for r0, r1 in probed)  # looked beyond the outer row
+    # both sides out of sight (a wide step reaching past the rim as well): never guessed
+    wide = np.array([[r * np.cos(a), r * np.sin(a)] for r in (75.0, 160.0) for a in az])
+    got = _order_grid(wide, centre, layout, 200.0)
+    assert isinstance(got, str) and "either neighbouring row" in got
 
 
 def _spot_hidden(scene, truth, view, laser, pixel, rim_curve) -> bool:
