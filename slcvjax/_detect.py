@@ -52,6 +52,7 @@ class BoardLayout:
             nominally seen (None for a chessboard seen directly).
         x_dir: +1 if the board's x grows with the image azimuth, -1 if it shrinks.
         y_dir: +1 if the board's y grows with the distance from the image centre, -1 if it shrinks.
+        dot_radius_mm: the printed dots' radius, when known (for the centroids' correction).
     """
 
     points: np.ndarray
@@ -60,6 +61,7 @@ class BoardLayout:
     azimuth_deg: float | None = None
     x_dir: int = 1
     y_dir: int = 1
+    dot_radius_mm: float | None = None
 
 
 @dataclass
@@ -75,6 +77,8 @@ class Setup:
     chessboard_views: list[tuple[str, str]]
     laser_azimuth_deg: list[float] | None = None
     extra: dict = field(default_factory=dict)
+    spot_sigma_mm: float | None = None  # the laser spots' Gaussian std on a surface, when known
+    rigid_boards: list[str] = field(default_factory=list)  # targets fixed to each other (one box)
 
 
 def setup_to_json(setup: Setup) -> dict:
@@ -84,6 +88,8 @@ def setup_to_json(setup: Setup) -> dict:
         d: dict[str, Any] = {"points": np.asarray(b.points, float).tolist(), "cols": b.cols, "rows": b.rows}
         if b.azimuth_deg is not None:
             d.update(azimuth_deg=float(b.azimuth_deg), x_dir=int(b.x_dir), y_dir=int(b.y_dir))
+        if b.dot_radius_mm is not None:
+            d["dot_radius_mm"] = float(b.dot_radius_mm)
         boards[name] = d
     doc = {
         "format": SETUP_FORMAT,
@@ -95,6 +101,10 @@ def setup_to_json(setup: Setup) -> dict:
         "views": [{"image": v} for v in setup.views],
         "chessboard_views": [{"image": im, "board": b} for im, b in setup.chessboard_views],
     }
+    if setup.spot_sigma_mm is not None:
+        doc["spot_sigma_mm"] = float(setup.spot_sigma_mm)
+    if setup.rigid_boards:
+        doc["rigid_boards"] = list(setup.rigid_boards)
     doc.update(setup.extra)
     return doc
 
@@ -130,6 +140,11 @@ def read_setup(path: str | Path) -> Setup:
                 if v is not None and v not in (1, -1):
                     ctx.fail(f"{where}.{key}", f"must be 1 or -1, got {json.dumps(v)}")
                 setattr(layout, key, 1 if v is None else int(v))
+        dot_r = ctx.get(b, "dot_radius_mm", where, optional=True)
+        if dot_r is not None:
+            layout.dot_radius_mm = ctx.number(dot_r, f"{where}.dot_radius_mm")
+            if not layout.dot_radius_mm > 0:
+                ctx.fail(f"{where}.dot_radius_mm", f"must be positive, got {json.dumps(dot_r)}")
         boards[name] = layout
     views = []
     for i, v in enumerate(ctx.list_of(doc, "views", "")):
@@ -144,9 +159,18 @@ def read_setup(path: str | Path) -> Setup:
         chess.append((im, b))
     if not any(b.azimuth_deg is not None for b in boards.values()) and views:
         ctx.fail("boards", "no board has an azimuth_deg: the detector cannot tell which target is which")
+    spot_sigma = ctx.get(doc, "spot_sigma_mm", "", optional=True)
+    if spot_sigma is not None:
+        spot_sigma = ctx.number(spot_sigma, "spot_sigma_mm")
+        if not spot_sigma > 0:
+            ctx.fail("spot_sigma_mm", f"must be positive, got {json.dumps(spot_sigma)}")
+    rigid = ctx.get(doc, "rigid_boards", "", list, optional=True) or []
+    for i, b in enumerate(rigid):
+        if b not in boards:
+            ctx.fail(f"rigid_boards[{i}]", f"unknown board {json.dumps(b)} (known: {', '.join(sorted(boards))})")
     known = {"format", "image_size", "mirror_shape", "n_lasers", "laser_azimuth_deg", "boards", "views"}
-    extra = {k: v for k, v in doc.items() if k not in known | {"chessboard_views"}}
-    return Setup((w, h), radius, height, n_lasers, boards, views, chess, laser_az, extra)
+    extra = {k: v for k, v in doc.items() if k not in known | {"chessboard_views", "spot_sigma_mm", "rigid_boards"}}
+    return Setup((w, h), radius, height, n_lasers, boards, views, chess, laser_az, extra, spot_sigma, list(rigid))
 
 
 # --------------------------------------------------------------------------- images
@@ -363,23 +387,10 @@ def _order_grid(
     image cannot tell which row is missing: nothing is placed, and the reason is returned.
     """
     cols, rows = layout.cols, layout.rows
-    if len(px) < cols or len(px) > cols * rows:
+    split = _columns(px, centre, layout)
+    if split is None:
         return None
-    a = _wrap(azimuth_deg(px, centre) - _circular_mean_deg(azimuth_deg(px, centre)))
-    r = np.linalg.norm(px - centre, axis=1)
-    order = np.argsort(a)
-    gaps = np.diff(a[order])
-    if cols > 1:
-        cut = np.sort(np.argsort(gaps)[-(cols - 1) :])
-        groups = np.split(order, cut + 1)
-        spread = max(float(np.ptp(a[g])) for g in groups)
-        if gaps[cut].min() <= 3.0 * max(spread, 0.2):
-            return None
-    else:
-        groups = [order]
-    if layout.x_dir < 0:
-        groups = groups[::-1]
-    groups = [g[np.argsort(layout.y_dir * r[g])] for g in groups]
+    groups, a, r = split
     m = max(len(g) for g in groups)
     full = [k for k, g in enumerate(groups) if len(g) == m]
     ref = np.array([r[groups[k]] for k in full])  # (F, m) radii of the fullest columns
@@ -436,6 +447,63 @@ def _order_grid(
             out[j * cols + k] = px[i]
             seen[j * cols + k] = True
     return out, seen
+
+
+def _columns(px: np.ndarray, centre: np.ndarray, layout: BoardLayout):
+    """A target's dots split into its columns by azimuth (each gap wider than 3x the groups' own
+    spread), in grid order, each column in grid order of its rows: ``(groups, azimuths
+    relative to their mean, image radii)``, or None."""
+    cols, rows = layout.cols, layout.rows
+    if len(px) < cols or len(px) > cols * rows:
+        return None
+    a = _wrap(azimuth_deg(px, centre) - _circular_mean_deg(azimuth_deg(px, centre)))
+    r = np.linalg.norm(px - centre, axis=1)
+    order = np.argsort(a)
+    gaps = np.diff(a[order])
+    if cols > 1:
+        cut = np.sort(np.argsort(gaps)[-(cols - 1) :])
+        groups = np.split(order, cut + 1)
+        spread = max(float(np.ptp(a[g])) for g in groups)
+        if gaps[cut].min() <= 3.0 * max(spread, 0.2):
+            return None
+    else:
+        groups = [order]
+    if layout.x_dir < 0:
+        groups = groups[::-1]
+    if any(len(g) > rows for g in groups):
+        return None
+    return [g[np.argsort(layout.y_dir * r[g])] for g in groups], a, r
+
+
+MAX_CANDIDATES = 64
+
+
+def candidate_placements(
+    px: np.ndarray, centre: np.ndarray, layout: BoardLayout
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Every placement of a target's dots on its grid that keeps each column's dots in the
+    order of their rows (for a target that cannot be placed from the image alone; the
+    calibration decides among them by the box, :func:`._centroids.resolve_ambiguous_boards`):
+    ``[(pixels (M, 2), seen (M,)), ...]``; empty where the dots do not split into columns or
+    the choices would exceed ``MAX_CANDIDATES``."""
+    from itertools import combinations, product
+
+    split = _columns(px, centre, layout)
+    if split is None:
+        return []
+    groups = split[0]
+    cols, rows = layout.cols, layout.rows
+    choices = [list(combinations(range(rows), len(g))) for g in groups]
+    if int(np.prod([len(c) for c in choices])) > MAX_CANDIDATES:
+        return []
+    out = []
+    for pick in product(*choices):
+        pix, seen = np.zeros((rows * cols, 2)), np.zeros(rows * cols, bool)
+        for k, (g, rows_of) in enumerate(zip(groups, pick, strict=True)):
+            for i, j in zip(g, rows_of, strict=True):
+                pix[j * cols + k], seen[j * cols + k] = px[i], True
+        out.append((pix, seen))
+    return out
 
 
 def _darkness_probe(green: np.ndarray, disc: MirrorDisc):
@@ -509,8 +577,13 @@ def detect_catadioptric(bgr: np.ndarray, name: str = "") -> ImageDetection:
     return ImageDetection(name, disc, find_rim(green, disc), find_dots(green, disc), find_spots(bgr, disc), green)
 
 
-def label_boards(det: ImageDetection, setup: Setup) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], list[str]]:
-    """Group one image's dots into the setup's wall targets and order each grid; returns (boards, problems)."""
+def label_boards(
+    det: ImageDetection, setup: Setup, candidates: dict | None = None
+) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], list[str]]:
+    """Group one image's dots into the setup's wall targets and order each grid; returns (boards, problems).
+
+    A target left out (ambiguous rows, or dots that do not fit the grid) gets its possible
+    placements (:func:`candidate_placements`) in ``candidates[name]`` when a dict is given."""
     walls = {k: b for k, b in setup.boards.items() if b.azimuth_deg is not None}
     problems: list[str] = []
     out = {k: (np.zeros((len(b.points), 2)), np.zeros(len(b.points), bool)) for k, b in walls.items()}
@@ -534,11 +607,13 @@ def label_boards(det: ImageDetection, setup: Setup) -> tuple[dict[str, tuple[np.
         got = _order_grid(
             det.dots[groups[gi]], det.disc.centre, walls[name], float(np.mean(det.disc.axes)), probe=probe
         )
-        if isinstance(got, str):
-            problems.append(f"{name}: {got}; board left out")
-            continue
-        if got is None:
-            problems.append(f"{name}: {len(groups[gi])} dots could not be placed on the grid; board left out")
+        if isinstance(got, str) or got is None:
+            why = got if isinstance(got, str) else f"{len(groups[gi])} dots could not be placed on the grid"
+            problems.append(f"{name}: {why}; board left out")
+            if candidates is not None:
+                placed = candidate_placements(det.dots[groups[gi]], det.disc.centre, walls[name])
+                if len(placed) > 1:
+                    candidates[name] = placed
             continue
         px, seen = got
         out[name] = (px, seen)
@@ -713,11 +788,15 @@ def detect_folder(folder: str | Path, progress: bool = False) -> tuple[Observati
         counts[name] = {"corners": len(corners)}
         cal_views.append(CalibrationViewObs(name, b, corners, np.ones(len(corners), bool)))
     dets = [detect_catadioptric(images[v], Path(v).stem) for v in setup.views]
-    boards_seen, board_probs = [], []
-    for d in dets:
-        bs, pr = label_boards(d, setup)
+    boards_seen, board_probs, ambiguous = [], [], []
+    for v, d in enumerate(dets):
+        cands: dict = {}
+        bs, pr = label_boards(d, setup, cands)
         boards_seen.append(bs)
         board_probs.append(pr)
+        for b, placed in cands.items():
+            options = [{"pixels": px[sn].tolist(), "indices": np.flatnonzero(sn).tolist()} for px, sn in placed]
+            ambiguous.append({"view": v, "board": b, "candidates": options})
     spots, spot_probs = label_spots(dets, setup, boards_seen)
     views = []
     for d, bs, bp, sp, spp in zip(dets, boards_seen, board_probs, spots, spot_probs, strict=True):
@@ -738,7 +817,16 @@ def detect_folder(folder: str | Path, progress: bool = False) -> tuple[Observati
         boards={k: np.asarray(b.points, float) for k, b in setup.boards.items()},
         calibration_views=cal_views,
         views=views,
-        extra={"detection": {"folder": str(folder), "problems": problems}},
+        extra={
+            "detection": {
+                "folder": str(folder),
+                "problems": problems,
+                "dot_radius_mm": {k: b.dot_radius_mm for k, b in setup.boards.items() if b.dot_radius_mm},
+                "spot_sigma_mm": setup.spot_sigma_mm,
+                "ambiguous_boards": ambiguous,
+            },
+            **({"rigid_boards": list(setup.rigid_boards)} if setup.rigid_boards else {}),
+        },
     )
     return obs, DetectionReport(problems, counts)
 

@@ -109,6 +109,23 @@ def _triangulate(rig: Rig, lasers, uv) -> SpotPoints:
 
 
 _HERMITE = np.polynomial.hermite_e.hermegauss(7)  # nodes and weights for a unit Gaussian
+_LEGENDRE = np.polynomial.legendre.leggauss(4)  # on [-1, 1], for the squared radius across a disk
+_DISK_ANGLES = 12  # equally spaced: exact for the disk's angular harmonics below the 12th
+
+
+def _image_centroid_offset(rig: Rig, x, e1, e2, ab, w) -> Float[Array, "2"]:
+    """The centroid of the image of a patch on the plane through ``x`` spanned by ``e1, e2``
+    (camera frame, mm) minus the image of ``x``: quadrature points ``ab`` (k, 2) in mm along
+    ``e1, e2``, weights ``w`` (k,) per unit area of the patch. Radiance is kept by the mirror, so
+    each patch covers the pixels its projection's Jacobian says: the weights are multiplied by it."""
+
+    def proj(q):
+        return project_through_mirror(rig.camera, rig.mirror, x + q[0] * e1 + q[1] * e2).uv
+
+    uv = jax.vmap(proj)(ab)
+    area = jnp.abs(jnp.linalg.det(jax.vmap(jax.jacfwd(proj))(ab)))
+    wa = w * area
+    return jnp.sum(wa[:, None] * uv, axis=0) / jnp.sum(wa) - proj(jnp.zeros(2))
 
 
 def spot_image_offset(rig: Rig, x: Float[Array, "3"], normal: Float[Array, "3"], sigma_mm) -> Float[Array, "2"]:
@@ -116,23 +133,32 @@ def spot_image_offset(rig: Rig, x: Float[Array, "3"], normal: Float[Array, "3"],
 
     The spot is a round Gaussian of std ``sigma_mm`` on the surface through ``x`` across
     ``normal`` (camera frame, mm).  Through the mirror its image is squeezed and bent, so the
-    centroid a detector measures (the image's intensity-weighted mean: radiance is kept by the
-    mirror, each surface patch covers the pixels its projection's Jacobian says) is not the
-    projection of ``x``.  Computed by Gauss-Hermite quadrature over the spot (7 x 7 points).
+    centroid a detector measures (the image's intensity-weighted mean) is not the projection of
+    ``x`` (:func:`_image_centroid_offset`).  Gauss-Hermite quadrature over the spot (7 x 7 points).
     """
     e1, e2 = orthonormal_basis(normal)
     nodes, weights = (jnp.asarray(a) for a in _HERMITE)
     a, b = (g.ravel() for g in jnp.meshgrid(nodes, nodes))
     w2 = jnp.outer(weights, weights).ravel()
+    return _image_centroid_offset(rig, x, e1, e2, sigma_mm * jnp.stack([a, b], axis=1), w2)
 
-    def proj(ab):
-        return project_through_mirror(rig.camera, rig.mirror, x + sigma_mm * (ab[0] * e1 + ab[1] * e2)).uv
 
-    ab = jnp.stack([a, b], axis=1)
-    uv = jax.vmap(proj)(ab)
-    area = jnp.abs(jnp.linalg.det(jax.vmap(jax.jacfwd(proj))(ab)))
-    w = w2 * area
-    return jnp.sum(w[:, None] * uv, axis=0) / jnp.sum(w) - proj(jnp.zeros(2))
+def disk_image_offset(rig: Rig, x: Float[Array, "3"], e1, e2, radius_mm) -> Float[Array, "2"]:
+    """Where the centroid of a printed dot's image lies from the image of its centre (px).
+
+    The dot is a uniform disk of ``radius_mm`` about ``x`` in the plane spanned by the unit
+    vectors ``e1, e2`` (camera frame); the detector's darkness-weighted centroid is the mean of
+    its image (:func:`_image_centroid_offset`; a symmetric blur does not move it). Quadrature:
+    Gauss-Legendre in the squared radius (4 nodes; the area element is uniform in it) times 12
+    equally spaced angles.
+    """
+    s_nodes = 0.5 * (jnp.asarray(_LEGENDRE[0]) + 1.0)  # the squared radius over [0, 1]
+    s_weights = 0.5 * jnp.asarray(_LEGENDRE[1])
+    th = jnp.asarray(np.arange(_DISK_ANGLES) * (2 * np.pi / _DISK_ANGLES))
+    rho = radius_mm * jnp.sqrt(s_nodes)
+    ab = jnp.stack([jnp.outer(rho, jnp.cos(th)).ravel(), jnp.outer(rho, jnp.sin(th)).ravel()], axis=1)
+    w = jnp.repeat(s_weights, _DISK_ANGLES)
+    return _image_centroid_offset(rig, x, e1, e2, ab, w)
 
 
 def _spot_offsets(rig: Rig, rows):

@@ -400,7 +400,14 @@ def render_scene(scene, out_dir, opts: RenderOptions = RenderOptions(), progress
             chess_names.append(name)
         if not cv2.imwrite(str(out / name), img):
             raise OSError(f"{out / name}: could not write the image")
-    write_json_atomic(out / "setup.json", setup_to_json(scene_setup(scene, names, chess_names)))
+    setup = scene_setup(scene, names, chess_names)
+    # what a user knows of the printed targets and the lasers
+    for b in setup.boards.values():
+        if b.azimuth_deg is not None:
+            b.dot_radius_mm = opts.dot_radius_mm
+    setup.spot_sigma_mm = opts.spot_sigma_mm
+    setup.rigid_boards = [k for k, b in setup.boards.items() if b.azimuth_deg is not None]  # the box's walls
+    write_json_atomic(out / "setup.json", setup_to_json(setup))
     return names + chess_names
 
 

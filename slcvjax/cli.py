@@ -118,13 +118,13 @@ def _cmd_detect(args) -> int:
 
 def _cmd_demo(args) -> int:
     from ._calibrate import (
-        calibrate,
         cramer_rao,
         laser_errors,
         reprojections,
         robust_sigma,
         to_calibration,
     )
+    from ._centroids import calibrate_detected
     from ._rig import Rig
     from ._simulate import make_scene, simulate
 
@@ -164,7 +164,8 @@ def _cmd_demo(args) -> int:
         obs = exact
     print(f"[{next(step)}/{steps}] calibrate: staged, then joint (the first run compiles, about a minute)", flush=True)
     t1 = time.perf_counter()
-    res = calibrate(obs)
+    res, obs, notes = calibrate_detected(obs)
+    _print_placed(notes)
     timings["calibration"] = time.perf_counter() - t1
     cal = to_calibration(res, obs)
     write_calibration(out / "calibration.json", cal)
@@ -292,8 +293,16 @@ def print_report(cal, name: str = "") -> None:
         )
 
 
+def _print_placed(notes: list[str]) -> None:
+    """One line for the targets the detector left out and the box placed (or could not)."""
+    if notes:
+        placed = sum("placed by the box" in n for n in notes)
+        print(f"{placed} of {len(notes)} targets the detector could not place were placed by the box's other walls")
+
+
 def _cmd_calibrate(args) -> int:
-    from ._calibrate import calibrate, to_calibration
+    from ._calibrate import to_calibration
+    from ._centroids import calibrate_detected
     from ._io import read_calibration
     from ._staged import CalibrationError
 
@@ -305,9 +314,12 @@ def _cmd_calibrate(args) -> int:
     for path, obs in zip(inputs, observations, strict=True):
         t0 = time.perf_counter()
         try:
-            res = calibrate(obs, camera=camera, freeze=freeze, loss=args.loss, loss_scale=args.loss_scale)
+            res, obs, notes = calibrate_detected(
+                obs, camera=camera, freeze=freeze, loss=args.loss, loss_scale=args.loss_scale
+            )
         except CalibrationError as e:
             raise FormatError(f"{path}: {e}") from None
+        _print_placed(notes)
         cal = to_calibration(res, obs)
         results.append((path, cal))
         print_report(cal, f"{path} ({time.perf_counter() - t0:.1f} s)")
