@@ -129,7 +129,9 @@ def main() -> None:
             t0 = time.perf_counter()
             render_scene(scene, Path(tmp) / "images", RenderOptions(noise=args.image_noise, seed=seed))
             t_render.append(time.perf_counter() - t0)
-            obs, _ = detect_folder(Path(tmp) / "images")
+            detected, _ = detect_folder(Path(tmp) / "images")
+        # as the CLI calibrates: the targets the detector left out placed by the box's other walls
+        first, obs, _ = calibrate_detected(detected)
         sig = detection_errors(obs, exact, rim_curve)
         cases = {
             "images": obs,
@@ -140,10 +142,10 @@ def main() -> None:
         x_ref = cramer_rao(truth, exact, 1.0)["x_ref"]
         row = {"seed": seed, "detection_sigma": sig}
         for name, o in cases.items():
-            if name == "images":  # the targets the detector left out placed by the box, as the CLI does
-                res = calibrate_detected(o)[0]
+            if name == "images":
+                res = first
             elif name == "corrected":
-                res = calibrate_detected(o, correct_centroids=True)[0]
+                res = calibrate_detected(detected, correct_centroids=True)[0]
             else:
                 res = calibrate(o)
             p, a = laser_errors(res.rig, truth.rig, x_ref)
