@@ -432,25 +432,14 @@ def confirm(plan: Plan, trials: int, seed: int = 0, progress: bool = False) -> d
     first reason: a plan whose views leave a laser without usable spots); the RMS figures
     are None when every trial failed.
     """
-    from ._calibrate import calibrate, laser_errors
-    from ._simulate import box_scene, simulate
-    from ._staged import CalibrationError
+    from ._calibrate import laser_errors
+    from ._simulate import box_scene
 
-    if trials < 1:
-        raise ValueError(f"trials must be at least 1, got {trials}")
     scene = box_scene(plan.rig, plan.views, plan.half_width, n_chess_views=len(plan.chess_poses) or 12)
     pos, ang, conv, failed = [], [], 0, []
-    it = range(trials)
-    if progress:
-        from tqdm import tqdm
-
-        it = tqdm(it, desc="confirm", unit="calibration")
-    for t in it:
-        obs, truth = simulate(scene, noise=plan.noise, seed=seed + t)
-        try:
-            res = calibrate(usable_observations(obs))
-        except CalibrationError as e:
-            failed.append(str(e))
+    for _, truth, res, error in simulated_calibrations(plan, trials, seed, progress):
+        if res is None:
+            failed.append(error)
             continue
         conv += res.passes[-1].converged
         p, a = laser_errors(res.rig, truth.rig, _true_working_points(scene))
@@ -466,6 +455,30 @@ def confirm(plan: Plan, trials: int, seed: int = 0, progress: bool = False) -> d
         "position_rms_mm": float(np.sqrt(np.mean(pos**2))),
         "direction_rms_deg": float(np.degrees(np.sqrt(np.mean(ang**2)))),
     }
+
+
+def simulated_calibrations(plan: Plan, trials: int, seed: int = 0, progress: bool = False):
+    """``trials`` simulations of the plan's box calibration at its noise (trial ``t``: seed
+    ``seed + t``), each calibrated from its usable observations: yields ``(obs, truth, result,
+    None)``, or ``(obs, truth, None, reason)`` where a calibration cannot be made."""
+    from ._calibrate import calibrate
+    from ._simulate import box_scene, simulate
+    from ._staged import CalibrationError
+
+    if trials < 1:
+        raise ValueError(f"trials must be at least 1, got {trials}")
+    scene = box_scene(plan.rig, plan.views, plan.half_width, n_chess_views=len(plan.chess_poses) or 12)
+    it = range(trials)
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(it, desc="confirm", unit="calibration")
+    for t in it:
+        obs, truth = simulate(scene, noise=plan.noise, seed=seed + t)
+        try:
+            yield obs, truth, calibrate(usable_observations(obs)), None
+        except CalibrationError as e:
+            yield obs, truth, None, str(e)
 
 
 def usable_observations(obs):

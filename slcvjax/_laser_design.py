@@ -406,37 +406,24 @@ def confirm_lasers(mp: MeasurePlan, rig: Rig, trials: int, seed: int = 0, progre
     the axis, fresh pixel noise) with that calibration and its covariance.
 
     Returns per diameter the RMS diameter error over the trials (mm; its relative sampling error
-    is about ``1 / sqrt(2 trials)``), the mean reported std, how many trials gave a circle, and
+    is about ``1 / sqrt(2 trials)``), the mean error, the RMS reported std, how many trials gave a circle, and
     how many calibrations failed (with the first reason).
     """
     import dataclasses
 
-    from ._calibrate import calibrate, to_calibration
-    from ._design import usable_observations
+    from ._calibrate import to_calibration
+    from ._design import simulated_calibrations
     from ._pipe import PipeScene, measure_observations, measurement_inputs, simulate_pipe, view_circle
-    from ._simulate import box_scene, simulate
-    from ._staged import CalibrationError
 
-    if trials < 1:
-        raise ValueError(f"trials must be at least 1, got {trials}")
     plan = dataclasses.replace(mp.plan, rig=rig)
-    scene = box_scene(rig, plan.views, plan.half_width, n_chess_views=len(plan.chess_poses) or 12)
     k = mp.diameters.size
     errors, reported = [[] for _ in range(k)], [[] for _ in range(k)]
     failed = []
-    it = range(trials)
-    if progress:
-        from tqdm import tqdm
-
-        it = tqdm(it, desc="confirm", unit="calibration")
-    for t in it:
-        obs, _ = simulate(scene, noise=plan.noise, seed=seed + t)
-        try:
-            res = calibrate(usable_observations(obs))
-        except CalibrationError as e:
-            failed.append(str(e))
+    for t, (obs, _, res, error) in enumerate(simulated_calibrations(plan, trials, seed, progress)):
+        if res is None:
+            failed.append(error)
             continue
-        sigma, cov = measurement_inputs("<calibration>", to_calibration(res, obs))
+        _, cov = measurement_inputs("<calibration>", to_calibration(res, obs))
         for j, d in enumerate(mp.diameters):
             pipe = PipeScene(rig, float(d), np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]))
             pobs, _ = simulate_pipe(pipe, noise=plan.noise, seed=10_000 * (j + 1) + seed + t)

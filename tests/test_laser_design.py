@@ -116,3 +116,16 @@ def test_measure_plan_rejects_a_ring_outside_the_pipe(small):
         ld.MeasurePlan(small.plan, np.array([60.0]))
     with pytest.raises(ValueError, match="diameters"):
         ld.MeasurePlan(small.plan, np.array([-1.0]))
+
+
+@pytest.mark.slow
+def test_confirmation_measures_every_pipe_with_each_simulated_calibration(small):
+    res = ld.optimise_lasers(small, steps=2)
+    out = ld.confirm_lasers(small, res.rig_after, trials=3, seed=4)
+    assert out["trials"] == 3 and out["failed"] == 0
+    assert out["circles"] == [3, 3]
+    for err, rep, pred in zip(out["diameter_error_rms_mm"], out["reported_std_rms_mm"],
+                              res.predicted_after.diameter_std_mm, strict=True):  # fmt: skip
+        # three trials: the error scatters, but its size and the reported std follow the prediction
+        assert 0.1 * pred < err < 4.0 * pred
+        assert rep == pytest.approx(pred, rel=0.3)
