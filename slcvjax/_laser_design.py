@@ -43,15 +43,14 @@ from ._camera import project
 from ._design import MIN_SPOTS, Plan, _problem, calibration_covariance
 from ._lasers import Lasers
 from ._measure import _circle_sensitivity, triangulate_spot
-from ._mirror import project_through_mirror, solve_mirror_point
+from ._mirror import BODY_CLEAR_FAR, body_clearance, project_through_mirror, solve_mirror_point
 from ._newton import exact_second_order
 from ._pipe import beam_pipe_point
 from ._rig import Rig
-from ._safe import safe_norm, safe_normalize
+from ._safe import safe_normalize
 
 BODY_RADIUS_MM = 12.0  # the renderer's default sensor body (RenderOptions)
 BODY_GAP_MM = 8.0
-_FAR = 1e3  # the body margin of a ray that never reaches the body's plane (mm)
 
 
 @dataclass
@@ -129,26 +128,17 @@ def _lasers_at(u, start, ranges) -> Lasers:
 # ----------------------------------------------------------------------------- one pipe
 
 
-def _spot_margins(rig: Rig, x, body):
-    """Of a scene point ``x``: whether it is seen, and its margins (mm to the rim, mm clear of the
-    body, px inside the image); continuous also where it is not seen (the mirror's surface
-    continued past its rim)."""
+def _spot_margins(rig: Rig, x, body, proj):
+    """Of a scene point ``x`` and its projection ``proj``: whether it is seen, its margins (mm to
+    the rim, mm clear of the body, px inside the image; continuous also where it is not seen:
+    the mirror's surface continued past its rim) and the mirror point that sees it."""
     cam, mir = rig.camera, rig.mirror
-    proj = project_through_mirror(cam, mir, x)
     m, _ = solve_mirror_point(mir, x, rim_margin=1.0)
-    s = jnp.dot(m - mir.apex, mir.axis)
-    rim = mir.height - s
-    ray = safe_normalize(x - m)
-    plane = mir.apex - body[1] * mir.axis
-    denom = jnp.dot(ray, mir.axis)
-    lam = jnp.dot(plane - m, mir.axis) / jnp.where(jnp.abs(denom) > 1e-12, denom, 1e-12)
-    y = m + lam * ray - plane
-    rho = safe_norm(y - jnp.dot(y, mir.axis) * mir.axis)
-    body_margin = jnp.where((jnp.abs(denom) > 1e-12) & (lam > 0.0), rho - body[0], _FAR)
+    rim = mir.height - jnp.dot(m - mir.apex, mir.axis)
+    clear = body_clearance(m, safe_normalize(x - m), mir, body[0], body[1])
     uv, _ = project(cam, m)
     img = jnp.min(jnp.stack([uv[0] + 0.5, cam.width - 0.5 - uv[0], uv[1] + 0.5, cam.height - 0.5 - uv[1]]))
-    seen = proj.valid & (body_margin > 0.0)
-    return seen, rim, body_margin, img
+    return proj.valid & (clear > 0.0), rim, clear, img, m
 
 
 def _pipe_prediction(rig: Rig, cov, sigma, radius, body):
@@ -161,14 +151,14 @@ def _pipe_prediction(rig: Rig, cov, sigma, radius, body):
 
     def spot(i):
         x, hit = beam_pipe_point(las.points[i], las.directions[i], c0, ez, radius)
-        seen, rim, body_m, img = _spot_margins(rig, x, body)
-        uv = project_through_mirror(rig.camera, rig.mirror, x).uv
+        proj = project_through_mirror(rig.camera, rig.mirror, x)
+        seen, rim, body_m, img, m = _spot_margins(rig, x, body, proj)
 
         def point(delta, px):
             return triangulate_spot(rig.retract(delta), i, px).xyz
 
-        j_rig, j_px = jax.jacfwd(point, argnums=(0, 1))(jnp.zeros(g), uv)
-        ray = safe_normalize(x - project_through_mirror(rig.camera, rig.mirror, x).mirror_point)
+        j_rig, j_px = jax.jacfwd(point, argnums=(0, 1))(jnp.zeros(g), proj.uv)
+        ray = safe_normalize(x - m)  # where the spot is seen, its mirror point
         angle = jnp.arccos(jnp.clip(jnp.abs(jnp.dot(ray, las.directions[i])), 0.0, 1.0))
         return x, hit & seen, rim, body_m, img, j_rig, j_px, angle
 
@@ -193,7 +183,10 @@ def _pipe_prediction(rig: Rig, cov, sigma, radius, body):
 
 
 def _emitters_seen(rig: Rig, body):
-    return jax.vmap(lambda p: _spot_margins(rig, p, body)[0])(rig.lasers.points)
+    def seen(p):
+        return _spot_margins(rig, p, body, project_through_mirror(rig.camera, rig.mirror, p))[0]
+
+    return jax.vmap(seen)(rig.lasers.points)
 
 
 def _evaluate(u, start, ranges, rig0, views, T_bw, chess, pk, sigma, n_v, radii, body):
@@ -287,7 +280,7 @@ class _Compiled:
         ang = np.where(seen, angle, np.inf)
         return MeasurePrediction(
             np.asarray(self.mp.diameters), np.sqrt(var_d), seen.sum(axis=1), rim.min(axis=1),
-            np.minimum(body_m, _FAR).min(axis=1), img.min(axis=1), np.degrees(ang.min(axis=1)), wall,
+            np.minimum(body_m, BODY_CLEAR_FAR).min(axis=1), img.min(axis=1), np.degrees(ang.min(axis=1)), wall,
             int(emitters.sum()), seen,
         )  # fmt: skip
 

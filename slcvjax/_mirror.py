@@ -245,6 +245,23 @@ def solve_mirror_point(
     return m, valid
 
 
+BODY_CLEAR_FAR = 1e3  # the body clearance of a ray that never reaches the body's plane (mm)
+
+
+def body_clearance(origin, direction, mirror: ConeMirror, radius, gap) -> Float[Array, ""]:
+    """How far (mm) a ray from ``origin`` along ``direction`` passes outside the sensor's body: a
+    disc of ``radius`` across the mirror's axis, ``gap`` before the apex (its radial distance
+    from the axis where it crosses the disc's plane, less ``radius``; negative: the body hides
+    it). ``BODY_CLEAR_FAR`` where it never reaches that plane ahead."""
+    a = mirror.axis
+    plane = mirror.apex - gap * a
+    denom = jnp.dot(direction, a)
+    lam = jnp.dot(plane - origin, a) / jnp.where(jnp.abs(denom) > 1e-12, denom, 1e-12)
+    x = origin + lam * direction - plane
+    rho = safe_norm(x - jnp.dot(x, a) * a)
+    return jnp.where((jnp.abs(denom) > 1e-12) & (lam > 0), rho - radius, BODY_CLEAR_FAR)
+
+
 def project_through_mirror(
     cam: Camera,
     mirror: ConeMirror,

@@ -26,7 +26,7 @@ import numpy as np
 
 from ._camera import Camera, pixel_to_ray
 from ._lasers import line_plane_intersection
-from ._mirror import ConeMirror, back_project
+from ._mirror import ConeMirror, back_project, body_clearance
 from ._pipe import beam_pipe_point
 from ._pose import Pose
 
@@ -110,13 +110,7 @@ def _wall_hit(origin, direction, walls_R, walls_t):
 
 def _body_hit(origin, direction, mirror: ConeMirror, radius, gap):
     """Does the ray meet the top face of the sensor's body (a disc across the axis, ``gap`` before the apex)?"""
-    a = mirror.axis
-    plane = mirror.apex - gap * a
-    denom = jnp.dot(direction, a)
-    lam = jnp.dot(plane - origin, a) / jnp.where(jnp.abs(denom) > 1e-12, denom, 1e-12)
-    x = origin + lam * direction - plane
-    rho = jnp.linalg.norm(x - jnp.dot(x, a) * a)
-    return (jnp.abs(denom) > 1e-12) & (lam > 0) & (rho < radius)
+    return body_clearance(origin, direction, mirror, radius, gap) < 0.0
 
 
 def _cata_ray(cam, mirror, uv, body_radius, body_gap):
