@@ -85,6 +85,21 @@ def _pipe_spots(rig: Rig, centers, axes, radius):
     return jax.vmap(one_pose)(centers, axes)
 
 
+def _pipe_observations(rig: Rig, views: list[ViewObs], extra: dict) -> Observations:
+    """Observations of spots alone (no boards, no direct views) for ``rig``'s camera, mirror and lasers."""
+    cam = rig.camera
+    return Observations(
+        image_size=(cam.width, cam.height),
+        mirror_radius=float(rig.mirror.radius),
+        mirror_height=float(rig.mirror.height),
+        n_lasers=rig.lasers.n,
+        boards={},
+        calibration_views=[],
+        views=views,
+        extra=extra,
+    )
+
+
 def simulate_pipe(scene: PipeScene, noise: float = 0.0, seed: int = 0) -> tuple[Observations, np.ndarray]:
     """Spot observations of a pipe scene with Gaussian pixel noise, and the true points.
 
@@ -106,16 +121,10 @@ def simulate_pipe(scene: PipeScene, noise: float = 0.0, seed: int = 0) -> tuple[
             px = uv[i, laser] + (rng.normal(0.0, noise, 2) if noise > 0 else 0.0)
             spots.append(SpotObs(int(laser), None, np.asarray(px, float)))
         views.append(ViewObs(f"pipe{i:02d}", {}, spots, np.zeros((0, 2))))
-    cam = rig.camera
-    obs = Observations(
-        image_size=(cam.width, cam.height),
-        mirror_radius=float(rig.mirror.radius),
-        mirror_height=float(rig.mirror.height),
-        n_lasers=rig.lasers.n,
-        boards={},
-        calibration_views=[],
-        views=views,
-        extra={
+    obs = _pipe_observations(
+        rig,
+        views,
+        {
             "simulation": {
                 "pipe": {
                     "diameter": scene.diameter,
@@ -194,16 +203,7 @@ def spots_from_images(
         for s, px in zip(every, fixed, strict=True):
             s.pixel = px
         extra["spot_centroids"] = {"corrected_for_the_mirror": True, "spot_sigma_mm": float(spot_sigma_mm)}
-    obs = Observations(
-        image_size=(cam.width, cam.height),
-        mirror_radius=float(rig.mirror.radius),
-        mirror_height=float(rig.mirror.height),
-        n_lasers=rig.lasers.n,
-        boards={},
-        calibration_views=[],
-        views=views,
-        extra=extra,
-    )
+    obs = _pipe_observations(rig, views, extra)
     return obs, problems
 
 

@@ -47,13 +47,20 @@ def _cmd_simulate(args) -> int:
     print(_summary(obs, truth))
     print(f"wrote {out / 'observations.json'} and {out / 'truth.json'} ({time.perf_counter() - t0:.1f} s)")
     if args.render:
-        from ._render import RenderOptions, render_scene
+        from ._render import render_scene
 
-        opts = RenderOptions(noise=args.image_noise, blur=args.blur, exposure=args.exposure, seed=args.seed)
+        opts = _render_options(args)
         t1 = time.perf_counter()
         files = render_scene(scene, out / "images", opts, progress=sys.stderr.isatty())
         print(f"wrote {len(files)} images and {out / 'images' / 'setup.json'} ({time.perf_counter() - t1:.1f} s)")
     return 0
+
+
+def _render_options(args):
+    """The image options of ``simulate --render``."""
+    from ._render import RenderOptions
+
+    return RenderOptions(noise=args.image_noise, blur=args.blur, exposure=args.exposure, seed=args.seed)
 
 
 def _simulate_pipe(args) -> int:
@@ -71,9 +78,9 @@ def _simulate_pipe(args) -> int:
     print(f"pipe {args.pipe:g} mm, {len(obs.views)} poses, {n} spots; the pipe's truth in its simulation.pipe")
     print(f"wrote {out / 'pipe_observations.json'} ({time.perf_counter() - t0:.1f} s)")
     if args.render:
-        from ._render import RenderOptions, render_pipe
+        from ._render import render_pipe
 
-        opts = RenderOptions(noise=args.image_noise, blur=args.blur, exposure=args.exposure, seed=args.seed)
+        opts = _render_options(args)
         t1 = time.perf_counter()
         files = render_pipe(scene, out / "pipe_images", opts, progress=sys.stderr.isatty())
         print(f"wrote {len(files)} images in {out / 'pipe_images'} ({time.perf_counter() - t1:.1f} s)")
