@@ -55,6 +55,17 @@ from ._persist import PersistentJit
 from ._pose import Pose
 from ._problem import Layout, Packed, pack, stack_poses, unstack_poses
 from ._rig import Rig, laser_columns, project_board_points, project_rim, project_spots
+from ._rigid import (
+    MISFIT_MIN_PX,
+    MISFIT_ROUNDS,
+    MISFIT_SIGMAS,
+    board_pose_covariances,
+    board_poses_of,
+    box_model,
+    box_pose_std,
+    rigid_masks,
+    rigid_params,
+)
 from ._safe import std_of_variance
 from ._staged import (
     CONSENSUS_PX,
@@ -198,6 +209,7 @@ class CalibrationResult:
     timings: dict = field(default_factory=dict)
     kind_sigma: dict = field(default_factory=dict)  # per kind noise sigma (px) from its median residual
     repairs: list = field(default_factory=list)  # observations relabelled or left out (see :func:`_repair`)
+    box: dict | None = None  # the rigid box model's boards, where it was used (see :func:`_rigid_refine`)
 
     @property
     def rig(self) -> Rig:
@@ -227,6 +239,7 @@ def calibrate(
     loss: str = "huber",
     loss_scale: float | None = None,
     max_steps: int = 200,
+    rigid: "bool | list[str]" = False,
 ) -> CalibrationResult:
     """Calibrate the whole rig from observations (see the module docstring).
 
@@ -239,8 +252,35 @@ def calibrate(
         loss_scale: the robust loss's scale in px; by default 3 sigma, sigma estimated
             robustly from the residuals.
         max_steps: the most LM linearisations per pass.
+        rigid: the rigid target box model (:mod:`._rigid`) for the group of boards the
+            observations declare (``rigid_boards``; ``True``) or for these board names:
+            one pose per board in the box and one sensor pose per view, refined from the
+            free solution (pass R); a board pose that does not fit the box is left out and
+            reported.
     """
-    return _calibrate_lockstep([obs], camera, freeze, loss, loss_scale, max_steps, _solve_loop)[0]
+    group = rigid_group(obs, rigid)
+    res = _calibrate_lockstep([obs], camera, freeze, loss, loss_scale, max_steps, _solve_loop)[0]
+    return _rigid_refine(res, obs, group, max_steps) if group else res
+
+
+def rigid_group(obs: Observations, rigid: "bool | list[str]") -> list[str]:
+    """The board names of the rigid box model for ``calibrate(rigid=...)``: none where ``rigid``
+    is False, the observations' ``rigid_boards`` where True, else ``rigid`` itself."""
+    if rigid is False or rigid is None:
+        return []
+    if rigid is True:
+        group = list(obs.extra.get("rigid_boards") or [])
+        if not group:
+            raise CalibrationError(
+                "rigid: the observations declare no rigid_boards (name the boards fixed in one box, "
+                'e.g. "rigid_boards": ["wall0", "wall1"], or pass their names)'
+            )
+    else:
+        group = list(rigid)
+    for i, b in enumerate(group):
+        if b not in obs.boards:
+            raise CalibrationError(f"rigid_boards[{i}]: unknown board {b!r} (known: {', '.join(sorted(obs.boards))})")
+    return group
 
 
 def resolve_batch(batch: str) -> str:
@@ -279,12 +319,17 @@ def calibrate_many(
     ``progress`` a bar counts the calibrations (in ``vmap`` they finish together, and the
     bar names the pass under way).
     """
-    kw = dict(camera=None, freeze=(), loss="huber", loss_scale=None, max_steps=200)
+    kw = dict(camera=None, freeze=(), loss="huber", loss_scale=None, max_steps=200, rigid=False)
     unknown = sorted(set(kwargs) - set(kw))
     if unknown:
         raise TypeError(f"calibrate_many: unexpected keyword(s) {', '.join(unknown)} (calibrate takes {', '.join(kw)})")
     kw |= kwargs
     args = (kw["camera"], kw["freeze"], kw["loss"], kw["loss_scale"], kw["max_steps"])
+    groups = [rigid_group(o, kw["rigid"]) for o in observations]
+
+    def rigid(res, o, group):
+        return _rigid_refine(res, o, group, kw["max_steps"]) if group else res
+
     batch = resolve_batch(batch)
     bar = None
     if progress:
@@ -296,17 +341,18 @@ def calibrate_many(
             if workers < 1:
                 raise ValueError(f"workers: expected at least 1, got {workers}")
 
-            def one(o):
-                return _calibrate_lockstep([o], *args, _solve_loop)[0]
+            def one(o, group):
+                return rigid(_calibrate_lockstep([o], *args, _solve_loop)[0], o, group)
 
             out = []
             with ThreadPoolExecutor(workers) as pool:
-                for res in pool.map(one, observations) if workers > 1 else map(one, observations):
+                for res in pool.map(one, observations, groups) if workers > 1 else map(one, observations, groups):
                     out.append(res)
                     if bar is not None:
                         bar.update(1)
             return out
         out = _calibrate_lockstep(observations, *args, _solve_vmap, bar=bar)
+        out = [rigid(res, o, g) for res, o, g in zip(out, observations, groups, strict=True)]
         if bar is not None:
             bar.update(len(out))  # in lockstep they finish together
         return out
@@ -565,6 +611,117 @@ def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, s
             )
         )
     return out
+
+
+def _rigid_refine(res: CalibrationResult, obs: Observations, group: list[str], max_steps: int) -> CalibrationResult:
+    """Pass R: the free solution ``res`` refined under the rigid box model (:mod:`._rigid`) of
+    the boards ``group``; a board pose whose dots' median residual exceeds
+    :data:`._rigid.MISFIT_SIGMAS` noise sigmas (and :data:`._rigid.MISFIT_MIN_PX`) does not fit
+    the box: its dots and spots are left out (recorded in the repairs) and R runs again.
+
+    The result's board poses are the box's (every board pose of the box, the left-out ones
+    included, at ``T_cam_box @ T_box_board``), its covariance the rig's block of the rigid
+    model's, and ``box`` holds the boards' poses in the box with their std."""
+    t0 = time.perf_counter()
+    pk = res.packed
+    n_d = int(pk.counts[0])
+    dots_per_pose = np.bincount(np.asarray(pk.dot_pose)[:n_d], minlength=pk.n_poses)
+    model = box_model(pk, group, obs.boards, usable=np.flatnonzero(dots_per_pose >= MIN_BOARD_DOTS))
+    params = rigid_params(model, pk.pose_keys, unstack_poses(res.params.poses), res.rig, res.params.chess)
+    masks = rigid_masks(model, res.masks, pk.n_poses)
+    passes, repairs = list(res.passes), list(res.repairs)
+    left: list[int] = []
+    cur = pk
+    for round_ in range(MISFIT_ROUNDS + 1):
+        pr = model.packed(cur)
+        layout = Layout.of(pr)
+        out = _solve(
+            pad_params(layout, params),
+            layout.pad_packed(pr),
+            pad_masks(layout, masks),
+            res.loss,
+            res.scale,
+            max_steps,
+            _RTOL_FINAL,
+        )
+        params = unpad_params(layout, out.params)
+        name = "R: rigid box" + (f" (after leaving out {len(left)} board pose(s))" if left else "")
+        passes.append(
+            JointPass(
+                name,
+                int(out.steps),
+                RESULT_NAMES[int(out.result)],
+                float(out.initial_cost),
+                float(out.cost),
+                float(res.scale),
+                int(out.result),
+            )
+        )
+        norm, kind, ok = _per_observation(params, pr)
+        n_d = int(cur.counts[0])
+        pose_d = np.asarray(cur.dot_pose)[:n_d]
+        dot_norm = np.where(ok[:n_d], norm[:n_d], np.inf)
+        sigma = robust_sigma(params, pr)
+        limit = max(MISFIT_SIGMAS * sigma, MISFIT_MIN_PX)
+        medians = {int(k): float(np.median(dot_norm[pose_d == k])) for k in np.unique(pose_d)}
+        new = [k for k, m in medians.items() if m > limit and k not in model.outside]
+        if not new or round_ == MISFIT_ROUNDS:
+            break
+        for k in new:
+            v, b = pk.pose_keys[k]
+            repairs.append(
+                {
+                    "kind": "board",
+                    "view": obs.views[v].name,
+                    "board": b,
+                    "index": -1,
+                    "action": "left out",
+                    "residual_px": medians[k],
+                    "reason": f"does not fit the rigid box: its dots' median residual {medians[k]:.3g} px "
+                    f"beyond {limit:.3g} px ({MISFIT_SIGMAS:g} sigma, at least {MISFIT_MIN_PX:g} px)",
+                    "whole_board": True,
+                }
+            )
+        left += new
+        n_s = int(cur.counts[1])
+        cur = cur.select(~np.isin(pose_d, left), ~np.isin(np.asarray(cur.spot_pose)[:n_s], left))
+    pr = model.packed(cur)
+    layout, lin = _linearisation(params, pr, masks, res.loss, res.scale)
+    cov = _covariance_of_linearisation(lin, pad_masks(layout, masks), None)
+    cov = cov._replace(blocks=layout.unpad_blocks(cov.blocks))
+    pose_cov = board_pose_covariances(model, params, lin, masks, cov, layout)
+    g = res.rig.tangent_dim
+    glob = np.asarray(cov.glob)
+    cov_out = Covariance(
+        glob[:g, :g], np.concatenate([pose_cov, np.asarray(cov.blocks)[model.n_blocks :]]), cov.sigma, cov.dof
+    )
+    out_params = Params(params.rig, board_poses_of(model, params), params.chess)
+    std = box_pose_std(params, glob, model)
+    box_poses = {model.gauge: Pose(np.eye(3), np.zeros(3))} | {
+        b: Pose(np.asarray(params.box.R)[i], np.asarray(params.box.t)[i]) for i, b in enumerate(model.boards)
+    }
+    box = {
+        "gauge": model.gauge,
+        "boards": {b: {"pose": box_poses[b], **std[b]} for b in (model.gauge, *model.boards)},
+        "views": len(model.views),
+        "free_board_poses": len(model.outside),
+        "left_out": [{"view": obs.views[pk.pose_keys[k][0]].name, "board": pk.pose_keys[k][1]} for k in left],
+        "notes": list(model.notes),
+    }
+    timings = dict(res.timings)
+    timings["rigid_s"] = time.perf_counter() - t0
+    timings["total_s"] = timings.get("total_s", 0.0) + timings["rigid_s"]
+    return dataclasses.replace(
+        res,
+        params=out_params,
+        packed=cur,
+        cov=cov_out,
+        passes=passes,
+        repairs=repairs,
+        timings=timings,
+        kind_sigma=dict(zip(KIND_NAMES, kind_sigmas(out_params, cur).tolist(), strict=True)),
+        box=box,
+    )
 
 
 OUTLIER_SIGMAS = 5.0  # a dot or spot with a residual beyond this many sigmas of its kind is left out,
@@ -1066,14 +1223,19 @@ def laser_errors(est: Rig, truth: Rig, x_ref: np.ndarray) -> tuple[np.ndarray, n
     return pos, ang
 
 
-def cramer_rao(truth: Calibration, obs: Observations, sigma: float, packed: Packed | None = None) -> dict:
+def cramer_rao(
+    truth: Calibration, obs: Observations, sigma: float, packed: Packed | None = None, rigid: "bool | list[str]" = False
+) -> dict:
     """The Cramer-Rao bound of a scene: ``sigma^2 (J^T J)^-1`` at the true parameters.
 
     Returns the covariance and, per laser, the bound's position std at the working
     point (mm) and direction std (rad), with their RMS over lasers.  ``packed``: the
     observations as a calibration packed them (``CalibrationResult.packed``: spots
     detected without a board have the board the staged stage gave them); by default
-    ``pack(obs)``, which leaves such spots out.
+    ``pack(obs)``, which leaves such spots out.  ``rigid``: the bound of the rigid box
+    model (as :func:`calibrate`'s ``rigid``; the truth's board poses must be rigid);
+    its covariance is then the rig's block, and ``box_cov`` the whole global block
+    (rig, then 6 per box board but the gauge, ``box_model``'s order).
     """
     pk = pack(obs) if packed is None else packed
     poses = stack_poses([truth.board_poses[v][b] for v, b in pk.pose_keys])
@@ -1081,11 +1243,24 @@ def cramer_rao(truth: Calibration, obs: Observations, sigma: float, packed: Pack
     chess_stack = stack_poses(chess) if chess else Pose(jnp.zeros((0, 3, 3)), jnp.zeros((0, 3)))
     params = Params(truth.rig, poses, chess_stack)
     masks = make_masks(params)
+    out = {}
+    group = rigid_group(obs, rigid)
+    if group:
+        model = box_model(pk, group, obs.boards)
+        free_masks = masks
+        params = rigid_params(model, pk.pose_keys, unstack_poses(poses), truth.rig, chess_stack)
+        masks = rigid_masks(model, free_masks, pk.n_poses)
+        pk = model.packed(pk)
     # plain least squares (Huber at 1e9 px), sharing the compiled covariance of calibrate()
     cov = covariance_of(params, pk, masks, "huber", 1e9, sigma=sigma)
+    if group:
+        g = truth.rig.tangent_dim
+        out["box_cov"] = np.asarray(cov.glob)
+        out["box_model"] = model
+        cov = cov._replace(glob=np.asarray(cov.glob)[:g, :g])
     x_ref = laser_working_points(truth.rig, poses, pk)
     pos, ang = laser_std(truth.rig, np.asarray(cov.glob), x_ref)
-    return {
+    return out | {
         "cov": cov,
         "x_ref": x_ref,
         "position_std_mm": pos,
@@ -1207,7 +1382,25 @@ def report(result: CalibrationResult, obs: Observations) -> dict:
             "matrix": cov.tolist(),
         },
     }
+    if result.box is not None:
+        uncertainty["rigid_box"] = _box_json(result.box)
     return {"residuals": residuals, "uncertainty": uncertainty}
+
+
+def _box_json(box: dict) -> dict:
+    """``uncertainty.rigid_box`` of a result with the rigid box model."""
+    boards = {
+        b: {
+            "R": np.asarray(d["pose"].R).tolist(),
+            "t": np.asarray(d["pose"].t).tolist(),
+            "rotation_std_deg": _finite_or_none(d["rotation_deg"]),
+            "translation_std_mm": _finite_or_none(d["translation_mm"]),
+        }
+        for b, d in box["boards"].items()
+    }
+    return {"gauge": box["gauge"], "boards": boards} | {
+        k: box[k] for k in ("views", "free_board_poses", "left_out", "notes")
+    }
 
 
 def _rig_json(rig: Rig) -> dict:

@@ -62,15 +62,28 @@ RESULT_NAMES = {CONVERGED: "converged", MAX_STEPS: "max_steps", STALLED: "stalle
 
 
 class Params(eqx.Module):
-    """All unknowns: the rig, the board poses (P,) and the direct-view poses (C,)."""
+    """All unknowns: the rig, the pose blocks (P,), the direct-view poses (C,) and, for the
+    rigid box model (:mod:`._rigid`), the boards' poses in the box.
+
+    Without ``box`` each pose block is a board pose ``T_cam_board`` of one view.  With it
+    (K,) a pose block is a view's ``T_cam_box`` (or a board pose outside the box), ``box``
+    holds ``T_box_board`` of the box's boards but the gauge (whose frame is the box's), and
+    the global block is the rig's tangent followed by 6 per box pose (``Packed.pair_block``
+    and ``pair_box`` say which of them each board pose is made of).
+    """
 
     rig: Rig
     poses: Pose
     chess: Pose
+    box: Pose | None = None
+
+    @property
+    def n_box(self) -> int:
+        return 0 if self.box is None else self.box.t.shape[0]
 
     @property
     def n_global(self) -> int:
-        return self.rig.tangent_dim
+        return self.rig.tangent_dim + 6 * self.n_box
 
     @property
     def n_blocks(self) -> int:
@@ -78,11 +91,14 @@ class Params(eqx.Module):
 
     def retract(self, dg: Float[Array, " G"], dp: Float[Array, "NB 6"]) -> "Params":
         p = self.poses.t.shape[0]
+        g = self.rig.tangent_dim
         rp = jax.vmap(lambda R, t, d: Pose(R, t).retract(d))
+        box = None if self.box is None else rp(self.box.R, self.box.t, dg[g:].reshape(-1, 6))
         return Params(
-            self.rig.retract(dg),
+            self.rig.retract(dg[:g]),
             rp(self.poses.R, self.poses.t, dp[:p]),
             rp(self.chess.R, self.chess.t, dp[p:]),
+            box,
         )
 
 
@@ -126,6 +142,22 @@ def _dot_point(d, R, t, xb):
 def _spot_point_local(d, lp, ld, R, t):
     """A spot's 3D point over ``d``: its laser (4) and board pose (6)."""
     return _spot_point(d[:N_LAS], lp, ld, Pose(R, t).retract(d[N_LAS:]))
+
+
+def _box_pose(d, Rv, tv, Rb, tb):
+    """``T_cam_box`` (its tangent ``d[6:]``) composed with ``T_box_board`` (``d[:6]``): a board
+    pose of the rigid box model."""
+    return Pose(Rv, tv).retract(d[6:]) @ Pose(Rb, tb).retract(d[:6])
+
+
+def _dot_point_box(d, Rv, tv, Rb, tb, xb):
+    """:func:`_dot_point` of the rigid box model: ``d`` is laser (4, unused), box pose (6), view pose (6)."""
+    return _box_pose(d[N_LAS:], Rv, tv, Rb, tb).apply(xb), jnp.asarray(True)
+
+
+def _spot_point_box(d, lp, ld, Rv, tv, Rb, tb):
+    """:func:`_spot_point_local` of the rigid box model: its laser (4), box pose (6), view pose (6)."""
+    return _spot_point(d[:N_LAS], lp, ld, _box_pose(d[N_LAS:], Rv, tv, Rb, tb))
 
 
 def _project_local(d, cam, mir, x, px):
@@ -172,8 +204,8 @@ class Rows(NamedTuple):
     """Scalar residual rows with their local Jacobians scattered by index."""
 
     r: Float[Array, " n"]  # residual
-    jg: Float[Array, "n 18"]  # Jacobian w.r.t. camera, mirror and (at most) one laser
-    gidx: Int[Array, "n 18"]  # global column of each (G = unused)
+    jg: Float[Array, "n W"]  # Jacobian w.r.t. camera, mirror, (at most) one laser (18), and one box pose (6 more)
+    gidx: Int[Array, "n W"]  # global column of each (G = unused)
     jp: Float[Array, "n 6"]  # Jacobian w.r.t. the pose block
     pidx: Int[Array, " n"]  # pose block (NB = none)
     obs: Int[Array, " n"]  # observation id (for robust weights)
@@ -191,8 +223,8 @@ class Chunk(NamedTuple):
     """``k`` observations of one group, ``m`` scalar rows each, with their local Jacobians."""
 
     r: Float[Array, "k m"]
-    jg: Float[Array, "k m 18"]  # w.r.t. the global columns ``gidx``
-    gidx: Int[Array, "k 18"]
+    jg: Float[Array, "k m W"]  # w.r.t. the global columns ``gidx``
+    gidx: Int[Array, "k W"]
     jp: Float[Array, "k m 6"]  # w.r.t. the pose block ``pidx``
     pidx: Int[Array, " k"]
     ok: Bool[Array, " k"]  # the model predicts it
@@ -218,9 +250,15 @@ def _groups(params: Params, pk: Packed, with_jac: bool, rim_norm: Array | None) 
     rim pixels, chessboard corners of the direct views."""
     rig = params.rig
     cam, mir, las = rig.camera, rig.mirror, rig.lasers
-    g = rig.tangent_dim
+    g = params.n_global  # the "unused" global column
     nb = params.n_blocks
     n_p = params.poses.t.shape[0]
+    box = params.box is not None
+    extra = 6 if box else 0  # a box pose's columns
+    if box:  # the gauge board and the boards outside the box take the identity (index n_box)
+        n_box = params.n_box
+        box_R = jnp.concatenate([params.box.R, jnp.eye(3)[None]])
+        box_t = jnp.concatenate([params.box.t, jnp.zeros((1, 3))])
 
     def lin(fun, n_local, *args):
         z = jnp.zeros(n_local)
@@ -237,7 +275,7 @@ def _groups(params: Params, pk: Packed, with_jac: bool, rim_norm: Array | None) 
         return r, jac, ok
 
     cm_idx = jnp.arange(N_CM)
-    unused = jnp.full(N_LAS, g)
+    unused = jnp.full(N_LAS + extra, g)
 
     # dots and spots: first each one's 3D point with its derivative in its local laser (4,
     # zero for a dot) and pose (6) parameters, then one projection through the mirror for
@@ -247,11 +285,22 @@ def _groups(params: Params, pk: Packed, with_jac: bool, rim_norm: Array | None) 
     zero = jnp.zeros((), dtype=pk.spot_laser.dtype)
 
     def points(pose, laser, xb, px, spot, spot_chunk=None):
-        R, t = params.poses.R[pose], params.poses.t[pose]
-        x, jx, ok_x = jax.vmap(lambda *a: lin(_dot_point, N_LAS + 6, *a))(R, t, xb)
+        if box:
+            block, in_box = pk.pair_block[pose], pk.pair_box[pose]
+            R, t = params.poses.R[block], params.poses.t[block]
+            Rb, tb = box_R[in_box], box_t[in_box]
+            x, jx, ok_x = jax.vmap(lambda *a: lin(_dot_point_box, N_LAS + 12, *a))(R, t, Rb, tb, xb)
+        else:
+            block = pose
+            R, t = params.poses.R[pose], params.poses.t[pose]
+            x, jx, ok_x = jax.vmap(lambda *a: lin(_dot_point, N_LAS + 6, *a))(R, t, xb)
         if las.n:
 
             def spot_points():
+                if box:
+                    return jax.vmap(lambda *a: lin(_spot_point_box, N_LAS + 12, *a))(
+                        las.points[laser], las.directions[laser], R, t, Rb, tb
+                    )
                 return jax.vmap(lambda *a: lin(_spot_point_local, N_LAS + 6, *a))(
                     las.points[laser], las.directions[laser], R, t
                 )
@@ -267,8 +316,12 @@ def _groups(params: Params, pk: Packed, with_jac: bool, rim_norm: Array | None) 
         r, j, ok = jax.vmap(lambda x, px: lin(_project_local, N_CM + 3, cam, mir, x, px))(x, px)
         j = jnp.concatenate([j[:, :, :N_CM], j[:, :, N_CM:] @ jx], axis=2)
         lidx = jnp.where(spot[:, None], N_CM + N_LAS * laser[:, None] + jnp.arange(N_LAS)[None, :], g)
-        gidx = jnp.concatenate([jnp.broadcast_to(cm_idx, (r.shape[0], N_CM)), lidx], axis=1)
-        return Chunk(r, j[:, :, : N_CM + N_LAS], gidx, j[:, :, N_CM + N_LAS :], pose, ok & ok_x, spot.astype(int))
+        parts = [jnp.broadcast_to(cm_idx, (r.shape[0], N_CM)), lidx]
+        if box:
+            parts.append(jnp.where((in_box < n_box)[:, None], rig.tangent_dim + 6 * in_box[:, None] + jnp.arange(6), g))
+        gidx = jnp.concatenate(parts, axis=1)
+        w = N_CM + N_LAS + extra
+        return Chunk(r, j[:, :, :w], gidx, j[:, :, w:], block, ok & ok_x, spot.astype(int))
 
     dots_spots = Group(
         points,
@@ -288,8 +341,8 @@ def _groups(params: Params, pk: Packed, with_jac: bool, rim_norm: Array | None) 
         k = r.shape[0]
         return Chunk(
             r,
-            jnp.concatenate([j, jnp.zeros((k, 1, N_LAS))], axis=2),
-            jnp.broadcast_to(jnp.concatenate([cm_idx, unused]), (k, N_CM + N_LAS)),
+            jnp.concatenate([j, jnp.zeros((k, 1, N_LAS + extra))], axis=2),
+            jnp.broadcast_to(jnp.concatenate([cm_idx, unused]), (k, N_CM + N_LAS + extra)),
             jnp.zeros((k, 1, 6)),
             jnp.full(k, nb),
             ok,
@@ -305,8 +358,10 @@ def _groups(params: Params, pk: Packed, with_jac: bool, rim_norm: Array | None) 
         k = r.shape[0]
         return Chunk(
             r,
-            jnp.concatenate([j[:, :, :N_CAM], jnp.zeros((k, 2, N_MIR + N_LAS))], axis=2),
-            jnp.broadcast_to(jnp.concatenate([jnp.arange(N_CAM), jnp.full(N_MIR + N_LAS, g)]), (k, N_CM + N_LAS)),
+            jnp.concatenate([j[:, :, :N_CAM], jnp.zeros((k, 2, N_MIR + N_LAS + extra))], axis=2),
+            jnp.broadcast_to(
+                jnp.concatenate([jnp.arange(N_CAM), jnp.full(N_MIR + N_LAS + extra, g)]), (k, N_CM + N_LAS + extra)
+            ),
             j[:, :, N_CAM:],
             n_p + pose,
             ok,
@@ -325,6 +380,7 @@ def _groups(params: Params, pk: Packed, with_jac: bool, rim_norm: Array | None) 
 def _flat(c: Chunk, present: Bool[Array, " k"], first_obs) -> Rows:
     """A chunk's scalar rows (invalid or padded observations zeroed), its observations numbered from ``first_obs``."""
     k, m = c.r.shape
+    w = c.jg.shape[-1]
     okm = jnp.broadcast_to((c.ok & present)[:, None], (k, m))
 
     def per_row(x):
@@ -332,8 +388,8 @@ def _flat(c: Chunk, present: Bool[Array, " k"], first_obs) -> Rows:
 
     return Rows(
         jnp.where(okm, c.r, 0.0).reshape(-1),
-        jnp.where(okm[..., None], c.jg, 0.0).reshape(-1, N_CM + N_LAS),
-        jnp.broadcast_to(c.gidx[:, None, :], (k, m, N_CM + N_LAS)).reshape(-1, N_CM + N_LAS),
+        jnp.where(okm[..., None], c.jg, 0.0).reshape(-1, w),
+        jnp.broadcast_to(c.gidx[:, None, :], (k, m, w)).reshape(-1, w),
         jnp.where(okm[..., None], c.jp, 0.0).reshape(-1, 6),
         per_row(c.pidx),
         per_row(first_obs + jnp.arange(k)),
@@ -693,13 +749,15 @@ def make_masks(params: Params, freeze: frozenset | set | tuple = ()) -> Masks:
 
 
 def pad_params(layout: Layout, params: Params) -> Params:
-    """``params`` with its board and direct-view poses padded to ``layout``'s bucket sizes."""
-    return Params(params.rig, layout.pad_poses(params.poses), layout.pad_poses(params.chess, chess=True))
+    """``params`` with its board and direct-view poses padded to ``layout``'s bucket sizes (the
+    box poses as they are: :mod:`._rigid` pads them)."""
+    return Params(params.rig, layout.pad_poses(params.poses), layout.pad_poses(params.chess, chess=True), params.box)
 
 
 def unpad_params(layout: Layout, params: Params) -> Params:
-    """The real poses of padded ``params``."""
-    return Params(params.rig, layout.unpad_poses(params.poses), layout.unpad_poses(params.chess, chess=True))
+    """The real poses of padded ``params`` (host arrays; the box poses all kept)."""
+    box = None if params.box is None else Pose(np.asarray(params.box.R), np.asarray(params.box.t))
+    return Params(params.rig, layout.unpad_poses(params.poses), layout.unpad_poses(params.chess, chess=True), box)
 
 
 def pad_masks(layout: Layout, masks: Masks) -> Masks:
@@ -735,8 +793,11 @@ def _table_arrays(params: Params, pk: Packed) -> tuple[Array, Array, Array]:
     """Per observation (dots, spots, rim pixels, corners): its kind, whether it is real, its pose block."""
     n_d, n_s, n_r, n_c = pk.dot_pose.shape[0], pk.spot_pose.shape[0], pk.rim_pixels.shape[0], pk.chess_pose.shape[0]
     kind = jnp.concatenate([jnp.full(n_d, 0), jnp.full(n_s, 1), jnp.full(n_r, 2), jnp.full(n_c, 3)])
+    dot_block, spot_block = pk.dot_pose, pk.spot_pose
+    if params.box is not None:
+        dot_block, spot_block = pk.pair_block[dot_block], pk.pair_block[spot_block]
     block = jnp.concatenate(
-        [pk.dot_pose, pk.spot_pose, jnp.full(n_r, params.n_blocks), params.poses.t.shape[0] + pk.chess_pose]
+        [dot_block, spot_block, jnp.full(n_r, params.n_blocks), params.poses.t.shape[0] + pk.chess_pose]
     )
     return kind, jnp.concatenate(pk.present()), block
 

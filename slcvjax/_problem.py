@@ -53,6 +53,12 @@ class Packed(eqx.Module):
         dot_src: ``(view index, board name, dot index)`` of each dot row (static; empty
             where the rows come from elsewhere than :func:`pack`).
         spot_src: ``(view index, spot index in the view)`` of each spot row (static, likewise).
+        pair_block: None, or for the rigid box model (:mod:`._rigid`) the pose block of each
+            board pose of ``pose_keys`` (its view's sensor pose, or its own for a board outside
+            the box); the rows' ``dot_pose`` / ``spot_pose`` still index the board poses.
+        pair_box: with ``pair_block``, each board pose's board in the box (an index into
+            ``Params.box``; the length of ``Params.box`` for the gauge board and the boards outside
+            the box: no box pose, the identity).
     """
 
     dot_pose: Int[Array, " D"]
@@ -70,10 +76,21 @@ class Packed(eqx.Module):
     chess_keys: tuple = eqx.field(static=True)
     dot_src: tuple = eqx.field(static=True, default=())
     spot_src: tuple = eqx.field(static=True, default=())
+    pair_block: Int[Array, " P"] | None = None
+    pair_box: Int[Array, " P"] | None = None
 
     @property
     def n_poses(self) -> int:
+        """The number of board poses (``pose_keys``)."""
         return len(self.pose_keys)
+
+    @property
+    def n_pose_blocks(self) -> int:
+        """The number of the joint problem's board pose blocks: one per board pose, or with the
+        rigid box model one per view and one per board pose outside the box."""
+        if self.pair_block is None:
+            return self.n_poses
+        return int(np.max(np.asarray(self.pair_block), initial=-1)) + 1
 
     @property
     def n_chess(self) -> int:
@@ -276,7 +293,7 @@ class Layout(NamedTuple):
             int(c[1]),
             int(c[2]),
             int(c[3]),
-            pk.n_poses if n_poses is None else n_poses,
+            pk.n_pose_blocks if n_poses is None else n_poses,
             pk.n_chess if n_chess is None else n_chess,
         )
         obs, poses = ((MIN_BUCKET, 2),) * 2 if fine else (OBSERVATION_LADDER, POSE_LADDER)
@@ -286,6 +303,14 @@ class Layout(NamedTuple):
         """``pk``'s arrays padded to the layout's sizes, without the static keys (which would
         make every dataset its own compilation)."""
         d, s, r, c = self.cap[:4]
+        pairs = {}
+        if pk.pair_block is not None:
+            n_pairs = np.shape(pk.pair_block)[0]
+            size = bucket(n_pairs, *POSE_LADDER)
+            pairs = {
+                "pair_block": jnp.asarray(pad_rows(pk.pair_block, size)),
+                "pair_box": jnp.asarray(pad_rows(pk.pair_box, size)),
+            }
         return Packed(
             jnp.asarray(pad_rows(pk.dot_pose[: self.n[0]], d)),
             jnp.asarray(pad_rows(pk.dot_points[: self.n[0]], d)),
@@ -300,6 +325,7 @@ class Layout(NamedTuple):
             jnp.asarray(self.n[:4], dtype=jnp.int64),
             (),
             (),
+            **pairs,
         )
 
     def pad_poses(self, poses: Pose, chess: bool = False) -> Pose:

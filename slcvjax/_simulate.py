@@ -291,7 +291,10 @@ def simulate(scene: Scene, noise: float = 0.0, seed: int = 0) -> tuple[Observati
         boards={k: np.asarray(v, float) for k, v in scene.boards.items()},
         calibration_views=cal_views,
         views=views,
-        extra={"simulation": {**scene.info, "noise_px": float(noise), "seed": int(seed)}},
+        extra={
+            "simulation": {**scene.info, "noise_px": float(noise), "seed": int(seed)},
+            "rigid_boards": list(walls),  # the walls stand still in the box (calibrate(rigid=True))
+        },
     )
     truth = Calibration(
         rig=rig,

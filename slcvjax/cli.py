@@ -276,7 +276,9 @@ def print_report(cal, name: str = "") -> None:
     fixed = res.get("repairs", [])
 
     def _repair(o):
-        what = " ".join(str(x) for x in (o["kind"], o["view"], o["board"]) if x) + f" #{o['index']}"
+        what = " ".join(str(x) for x in (o["kind"], o["view"], o["board"]) if x) + (
+            f" #{o['index']}" if o["index"] >= 0 else ""
+        )
         if o["action"] == "relabelled":
             return f"{what} laser {o['laser']} -> {o['new_laser']}"
         return f"{what} left out ({_fmt(o['residual_px'], 1)} px)"
@@ -293,6 +295,15 @@ def print_report(cal, name: str = "") -> None:
     ms = unc["mirror_std"]
     apex, tilt = (", ".join(_fmt(v, 4) for v in ms[k]) for k in ("apex_mm", "axis_tilt_deg"))
     print(f"mirror std apex [{apex}] mm  axis [{tilt}] deg")
+    box = unc.get("rigid_box")
+    if box:
+        worst = max(
+            (max(v for v in d["translation_std_mm"] if v is not None) for d in box["boards"].values()), default=0.0
+        )
+        print(
+            f"rigid box  gauge {box['gauge']}, {len(box['boards'])} boards over {box['views']} views, box poses "
+            f"std <= {worst:.3g} mm, {len(box['left_out'])} board pose(s) left out (do not fit the box)"
+        )
     for i, las in enumerate(unc["lasers"]):
         print(
             f"laser {i:2d}   std {_fmt(las['position_std_mm'])} mm at {las['working_range_mm']:.0f} mm, "
@@ -322,7 +333,7 @@ def _cmd_calibrate(args) -> int:
         t0 = time.perf_counter()
         try:
             res, obs, notes = calibrate_detected(
-                obs, camera=camera, freeze=freeze, loss=args.loss, loss_scale=args.loss_scale
+                obs, camera=camera, freeze=freeze, loss=args.loss, loss_scale=args.loss_scale, rigid=args.rigid
             )
         except CalibrationError as e:
             raise FormatError(f"{path}: {e}") from None
@@ -769,6 +780,12 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--freeze", help="comma-separated blocks to hold fixed: camera, mirror, lasers, poses, chess_poses")
     c.add_argument("--loss", default="huber", choices=["huber", "cauchy", "linear"], help="robust loss (default huber)")
     c.add_argument("--loss-scale", type=float, default=None, help="robust loss scale in px (default 3 sigma)")
+    c.add_argument(
+        "--rigid",
+        action="store_true",
+        help="the targets the observations declare fixed in one box (rigid_boards) as one pose per board in the "
+        "box and one sensor pose per view; a board pose that does not fit the box is left out and reported",
+    )
     c.add_argument("--export-opencv", help="also write the camera as OpenCV FileStorage YAML")
     c.set_defaults(func=_cmd_calibrate)
 
