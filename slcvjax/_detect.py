@@ -115,7 +115,9 @@ def read_setup(path: str | Path) -> Setup:
     fmt = ctx.get(doc, "format", "", str)
     if fmt != SETUP_FORMAT:
         ctx.fail("format", f"expected {SETUP_FORMAT!r}, got {fmt!r}")
-    (w, h), radius, height, n_lasers = read_sensor_fields(ctx, doc)
+    (w, h), radius, height, n_lasers, shape = read_sensor_fields(ctx, doc)
+    if shape is not None:
+        ctx.fail("mirror_shape.kind", f"the detector supports the cone only, got {shape['kind']!r}")
     az = ctx.get(doc, "laser_azimuth_deg", "", list, optional=True)
     laser_az = None
     if az is not None:

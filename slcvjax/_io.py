@@ -20,7 +20,7 @@ import numpy as np
 
 from ._camera import Camera
 from ._lasers import Lasers
-from ._mirror import ConeMirror
+from ._mirror import mirror_of_shape, shape_json
 from ._pose import Pose
 from ._rig import Rig
 
@@ -178,6 +178,9 @@ class Observations:
     calibration_views: list[CalibrationViewObs]
     views: list[ViewObs]
     extra: dict = field(default_factory=dict)
+    # the mirror's shape (``._mirror.shape_json``'s form) where it is not the cone of
+    # ``mirror_radius`` and ``mirror_height`` (the rim circle's radius and sag, for every kind)
+    mirror_shape: dict | None = None
 
 
 def _pixels(ctx: _Ctx, val: Any, n: int, where: str) -> tuple[np.ndarray, np.ndarray]:
@@ -195,21 +198,41 @@ def _pixels(ctx: _Ctx, val: Any, n: int, where: str) -> tuple[np.ndarray, np.nda
     return px, seen
 
 
-def read_sensor_fields(ctx: _Ctx, doc: Any) -> tuple[tuple[int, int], float, float, int]:
-    """``image_size``, ``mirror_shape`` (radius, height) and ``n_lasers``, shared by the input formats."""
+def read_shape(ctx: "_Ctx", shape: Any, where: str) -> tuple[float, float, dict | None]:
+    """A mirror's shape (``mirror_shape``, or a calibration's ``mirror``): the rim's radius and
+    sag, and the shape (None for a cone).  ``kind``: cone (``radius``, ``height``), sphere or
+    paraboloid (``vertex_radius``, ``radius``), hyperboloid or ellipsoid (those and
+    ``conic_constant``)."""
+    from ._mirror import MIRROR_KINDS, mirror_of_shape
+
+    kind = ctx.get(shape, "kind", where, str)
+    if kind not in MIRROR_KINDS:
+        ctx.fail(f"{where}.kind", f"unknown mirror kind {kind!r} (known: {', '.join(MIRROR_KINDS)})")
+    radius = ctx.positive(ctx.get(shape, "radius", where), f"{where}.radius")
+    if kind == "cone":
+        return radius, ctx.positive(ctx.get(shape, "height", where), f"{where}.height"), None
+    vertex_radius = ctx.positive(ctx.get(shape, "vertex_radius", where), f"{where}.vertex_radius")
+    out = {"kind": kind, "vertex_radius": vertex_radius, "radius": radius}
+    if kind in ("hyperboloid", "ellipsoid"):
+        out["conic_constant"] = ctx.number(ctx.get(shape, "conic_constant", where), f"{where}.conic_constant")
+    try:
+        mirror = mirror_of_shape(out, [0.0, 0.0, 1.0], [0.0, 0.0, 1.0])
+    except ValueError as e:
+        ctx.fail(where, str(e))
+    return radius, float(mirror.height), out
+
+
+def read_sensor_fields(ctx: _Ctx, doc: Any) -> tuple[tuple[int, int], float, float, int, dict | None]:
+    """``image_size``, ``mirror_shape`` (the rim's radius and sag, and the shape: None for a
+    cone) and ``n_lasers``, shared by the input formats."""
     size = ctx.get(doc, "image_size", "", list)
     if len(size) != 2:
         ctx.fail("image_size", f"expected [width, height], got {len(size)} values")
     w = ctx.integer(size[0], "image_size[0]", lo=1)
     h = ctx.integer(size[1], "image_size[1]", lo=1)
-    shape = ctx.get(doc, "mirror_shape", "", dict)
-    kind = ctx.get(shape, "kind", "mirror_shape", str)
-    if kind != "cone":
-        ctx.fail("mirror_shape.kind", f"only 'cone' is supported, got {kind!r}")
-    radius = ctx.positive(ctx.get(shape, "radius", "mirror_shape"), "mirror_shape.radius")
-    height = ctx.positive(ctx.get(shape, "height", "mirror_shape"), "mirror_shape.height")
+    radius, height, shape = read_shape(ctx, ctx.get(doc, "mirror_shape", "", dict), "mirror_shape")
     n_lasers = ctx.integer(ctx.get(doc, "n_lasers", ""), "n_lasers", lo=0)
-    return (w, h), radius, height, n_lasers
+    return (w, h), radius, height, n_lasers, shape
 
 
 def read_observations(path: str | os.PathLike) -> Observations:
@@ -219,7 +242,7 @@ def read_observations(path: str | os.PathLike) -> Observations:
     units = ctx.get(doc, "units", "", str, optional=True)
     if units is not None and units != "mm":
         ctx.fail("units", f"expected 'mm', got {units!r}")
-    (w, h), radius, height, n_lasers = read_sensor_fields(ctx, doc)
+    (w, h), radius, height, n_lasers, shape = read_sensor_fields(ctx, doc)
 
     boards_doc = ctx.get(doc, "boards", "", dict)
     boards: dict[str, np.ndarray] = {}
@@ -282,7 +305,7 @@ def read_observations(path: str | os.PathLike) -> Observations:
         "views",
     }
     extra = {k: v for k, v in doc.items() if k not in known}
-    return Observations((w, h), radius, height, n_lasers, boards, cal_views, views, extra)
+    return Observations((w, h), radius, height, n_lasers, boards, cal_views, views, extra, shape)
 
 
 def _px_list(px: np.ndarray, seen: np.ndarray) -> list:
@@ -295,7 +318,7 @@ def observations_to_json(obs: Observations) -> dict:
         "format": OBSERVATIONS_FORMAT,
         "units": "mm",
         "image_size": [int(obs.image_size[0]), int(obs.image_size[1])],
-        "mirror_shape": {"kind": "cone", "radius": obs.mirror_radius, "height": obs.mirror_height},
+        "mirror_shape": obs.mirror_shape or {"kind": "cone", "radius": obs.mirror_radius, "height": obs.mirror_height},
         "n_lasers": int(obs.n_lasers),
         "boards": {n: {"points": np.asarray(p, float).tolist()} for n, p in obs.boards.items()},
         "calibration_views": [
@@ -378,10 +401,8 @@ def calibration_to_json(cal: Calibration) -> dict:
         return doc
     doc.update(
         {
-            "mirror": {
-                "kind": "cone",
-                "radius": float(mir.radius),
-                "height": float(mir.height),
+            "mirror": shape_json(mir)
+            | {
                 "apex": np.asarray(mir.apex, float).tolist(),
                 "axis": np.asarray(mir.axis, float).tolist(),
             },
@@ -423,14 +444,10 @@ def read_calibration(path: str | os.PathLike) -> Calibration:
     m = ctx.get(doc, "mirror", "", dict, optional=True)
     mirror = None
     if m is not None:
-        kind = ctx.get(m, "kind", "mirror", str)
-        if kind != "cone":
-            ctx.fail("mirror.kind", f"only 'cone' is supported, got {kind!r}")
-        radius = ctx.positive(ctx.get(m, "radius", "mirror"), "mirror.radius")
-        height = ctx.positive(ctx.get(m, "height", "mirror"), "mirror.height")
+        radius, height, shape = read_shape(ctx, m, "mirror")
         apex = ctx.vector(ctx.get(m, "apex", "mirror"), 3, "mirror.apex")
         axis = _unit(ctx, ctx.vector(ctx.get(m, "axis", "mirror"), 3, "mirror.axis"), "mirror.axis")
-        mirror = ConeMirror.create(apex, axis, radius, height)
+        mirror = mirror_of_shape(shape, apex, axis, radius, height)
 
     pts, dirs = [], []
     for i, las in enumerate(ctx.list_of(doc, "lasers", "", optional=True)):

@@ -25,6 +25,8 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
 from ._camera import Camera, in_image, pixel_to_ray, project
+from ._conic import KINDS as CONIC_KINDS
+from ._conic import ConicMirror
 from ._newton import newton_implicit, newton_residual_norm
 from ._safe import orthonormal_basis, safe_div, safe_norm, safe_normalize, safe_sqrt
 
@@ -75,14 +77,44 @@ class ConeMirror(eqx.Module):
         return centre + self.radius * (jnp.cos(angles)[:, None] * e1 + jnp.sin(angles)[:, None] * e2)
 
 
+MIRROR_KINDS = ("cone",) + CONIC_KINDS
+
+
+def shape_json(mirror) -> dict:
+    """A mirror's shape as ``mirror_shape`` writes it: ``{"kind": "cone", "radius", "height"}``, or
+    ``{"kind", "vertex_radius", "radius"}`` with ``"conic_constant"`` for a hyperboloid or an ellipsoid."""
+    if isinstance(mirror, ConeMirror):
+        return {"kind": "cone", "radius": float(mirror.radius), "height": float(mirror.height)}
+    kind = mirror.kind
+    out = {"kind": kind, "vertex_radius": 1.0 / float(mirror.curvature), "radius": float(mirror.radius)}
+    if kind in ("hyperboloid", "ellipsoid"):
+        out["conic_constant"] = float(mirror.conic)
+    return out
+
+
+def mirror_of_shape(shape: dict | None, apex, axis, radius: float | None = None, height: float | None = None):
+    """The mirror of a shape (:func:`shape_json`'s form; None: a cone of ``radius`` and ``height``)
+    with its vertex at ``apex`` and its axis ``axis``.  Raises ``ValueError`` for a bad shape."""
+    if shape is None:
+        return ConeMirror.create(apex, axis, radius, height)
+    if shape["kind"] == "cone":
+        return ConeMirror.create(apex, axis, shape["radius"], shape["height"])
+    return ConicMirror.of_kind(
+        shape["kind"], apex, axis, shape["vertex_radius"], shape["radius"], shape.get("conic_constant")
+    )
+
+
 def surface_normal(mirror: ConeMirror, x: Float[Array, "3"]) -> Float[Array, "3"]:
     """Outward unit normal of the cone at a surface point.
 
     On the surface the quadric's gradient ``q - (1 + k^2)(q.a) a`` has the direction
     ``u - k a`` where ``u`` is the unit radial vector of ``q``; that form is used because
     it does not amplify a point's tiny distance off the surface near the apex.  At the
-    apex itself (no radial direction) it returns ``-a``.
+    apex itself (no radial direction) it returns ``-a``.  Another mirror of revolution
+    (``._conic.ConicMirror``) gives its own.
     """
+    if not isinstance(mirror, ConeMirror):
+        return mirror.surface_normal(x)
     q = x - mirror.apex
     u = safe_normalize(q - jnp.dot(q, mirror.axis) * mirror.axis)
     return safe_normalize(u - mirror.k * mirror.axis)
@@ -107,8 +139,11 @@ def intersect(mirror: ConeMirror, origin: Float[Array, "3"], direction: Float[Ar
     The quadric ``|w + t d|^2 - (1 + k^2)((w + t d).a)^2 = 0`` (``w = origin - apex``)
     is solved with the cancellation-free quadratic formula; a root counts where
     ``t > 0`` and ``0 <= s <= h`` (``s`` the axial coordinate).  A miss, a
-    tangent ray or a ray parallel to a generatrix gives ``valid = False``.
+    tangent ray or a ray parallel to a generatrix gives ``valid = False``.  Another mirror
+    of revolution (``._conic.ConicMirror``) intersects itself.
     """
+    if not isinstance(mirror, ConeMirror):
+        return mirror.intersect(origin, direction)
     a = mirror.axis
     c = 1.0 + mirror.k**2
     w = origin - mirror.apex
@@ -226,8 +261,13 @@ def solve_mirror_point(
     generatrix's tangent plane past the apex (``s > -h apex_margin``): the solution
     in ``(s, theta)`` and its pixel continue smoothly through the apex, so a point
     seen right at the apex is not lost when the estimate moves it a hair across.
-    Implicit derivative (``implicit=True``) or unrolled (baseline).
+    Implicit derivative (``implicit=True``) or unrolled (baseline).  Another mirror of
+    revolution (``._conic.ConicMirror``) solves its own reflection.
     """
+    if not isinstance(mirror, ConeMirror):
+        return mirror.solve_mirror_point(
+            p_cam, iters=max(iters, 12), implicit=implicit, rim_margin=rim_margin, apex_margin=apex_margin
+        )
     params = (mirror.apex, mirror.axis, mirror.k, p_cam)
     x0 = _initial_guess(mirror, p_cam)
     x = newton_implicit(_reflection_residual, x0, params, iters, implicit=implicit)

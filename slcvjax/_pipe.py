@@ -18,7 +18,7 @@ import numpy as np
 
 from ._io import Observations, SpotObs, ViewObs
 from ._measure import Circle, ViewPoints, fit_circle_3d, measure_spots
-from ._mirror import project_through_mirror
+from ._mirror import ConeMirror, project_through_mirror, shape_json
 from ._rig import Rig
 
 
@@ -97,6 +97,7 @@ def _pipe_observations(rig: Rig, views: list[ViewObs], extra: dict) -> Observati
         calibration_views=[],
         views=views,
         extra=extra,
+        mirror_shape=None if isinstance(rig.mirror, ConeMirror) else shape_json(rig.mirror),
     )
 
 

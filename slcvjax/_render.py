@@ -356,14 +356,21 @@ def scene_setup(scene, image_names: list[str], chess_names: list[str]):
     )
 
 
+def _cone_only(mirror) -> None:
+    if not isinstance(mirror, ConeMirror):
+        raise ValueError(f"rendering supports the cone mirror only, not a {type(mirror).__name__}")
+
+
 def render_scene(scene, out_dir, opts: RenderOptions = RenderOptions(), progress: bool = False) -> list[str]:
     """Render every view of a simulated scene into ``out_dir`` with its ``setup.json``; returns the files.
 
     One PNG per catadioptric view (``view00.png``, ...) and per direct chessboard
     view (``chess00.png``, ...).  Image ``k`` of a kind gets noise seed ``opts.seed + k``
-    (chessboard images ``+ 1000``).
+    (chessboard images ``+ 1000``).  The cone mirror only (its setup's ``mirror_shape``).
     """
     from pathlib import Path
+
+    _cone_only(scene.rig.mirror)
 
     from ._detect import setup_to_json
     from ._io import write_json_atomic
@@ -413,6 +420,7 @@ def render_pipe(scene, out_dir, opts: RenderOptions = RenderOptions(), progress:
     wall.  No setup is written: the spots are labelled by a calibration's laser lines when
     measured (``slcvjax measure CAL IMAGE_DIR``).
     """
+    _cone_only(scene.rig.mirror)
     from pathlib import Path
 
     out = Path(out_dir)

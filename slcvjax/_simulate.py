@@ -35,7 +35,7 @@ import numpy as np
 from ._camera import Camera
 from ._io import Calibration, CalibrationViewObs, Observations, SpotObs, ViewObs
 from ._lasers import Lasers, line_plane_intersection
-from ._mirror import ConeMirror
+from ._mirror import ConeMirror, shape_json
 from ._pose import Pose, so3_exp
 from ._rig import Rig, project_board_points, project_direct, project_rim
 
@@ -295,6 +295,7 @@ def simulate(scene: Scene, noise: float = 0.0, seed: int = 0) -> tuple[Observati
             "simulation": {**scene.info, "noise_px": float(noise), "seed": int(seed)},
             "rigid_boards": list(walls),  # the walls stand still in the box (calibrate(rigid=True))
         },
+        mirror_shape=None if isinstance(rig.mirror, ConeMirror) else shape_json(rig.mirror),
     )
     truth = Calibration(
         rig=rig,

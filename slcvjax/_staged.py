@@ -28,7 +28,7 @@ import numpy as np
 from ._camera import Camera, undistort
 from ._io import Observations, SpotObs, ViewObs
 from ._lasers import Lasers
-from ._mirror import ConeMirror, back_project
+from ._mirror import ConeMirror, back_project, mirror_of_shape
 from ._persist import PersistentJit
 from ._pose import Pose, so3_exp
 from ._problem import (
@@ -187,9 +187,10 @@ def _circle_pose(y):
 
 
 def mirror_from_rim(
-    camera: Camera, rim_pixels: np.ndarray, radius: float, height: float
+    camera: Camera, rim_pixels: np.ndarray, radius: float, height: float, shape: dict | None = None
 ) -> tuple[list[ConeMirror], StageReport]:
-    """Candidate mirror poses (one or two) from the rim's edge pixels.
+    """Candidate mirror poses (one or two) from the rim's edge pixels: the rim circle of
+    ``radius`` at the sag ``height`` from the vertex, of a mirror of ``shape`` (None: the cone).
 
     The circle is fitted from nine starting tilts; distinct solutions whose RMS is
     within 1.5x of the best are returned, best first.  ``rms`` is in px (first order).
@@ -238,7 +239,7 @@ def mirror_from_rim(
     for _, (c, n) in distinct[:2]:
         if n @ c < 0:  # the axis points away from the camera, towards the rim
             n = -n
-        mirrors.append(ConeMirror.create(c - height * n, n, radius, height))
+        mirrors.append(mirror_of_shape(shape, c - height * n, n, radius, height))
     note = f"{len(rim)} rim pixels, {len(mirrors)} candidate pose(s)"
     return mirrors, StageReport("mirror", best, "px", [note])
 
@@ -552,7 +553,7 @@ def staged(obs: Observations, camera: Camera | None = None, pk: Packed | None = 
         camera, chess, rep = calibrate_intrinsics(obs)
         reports.append(rep)
     rim = np.concatenate([v.rim for v in obs.views]) if obs.views else np.zeros((0, 2))
-    mirrors, rep_m = mirror_from_rim(camera, rim, obs.mirror_radius, obs.mirror_height)
+    mirrors, rep_m = mirror_from_rim(camera, rim, obs.mirror_radius, obs.mirror_height, obs.mirror_shape)
     best = None
     for i, m in enumerate(mirrors):
         poses, rep_p = board_poses(camera, m, pk)

@@ -1,0 +1,217 @@
+"""Conic mirrors of revolution against closed forms: the foci of the hyperboloid and the
+paraboloid, the sphere's centre, projection and back-projection as inverses, and the implicit
+derivative against finite differences."""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from slcvjax._camera import project
+from slcvjax._conic import ConicMirror
+from slcvjax._mirror import back_project, intersect, project_through_mirror, reflect, surface_normal
+from slcvjax._simulate import paper_camera
+
+# (kind, vertex radius R, conic constant) with a rim of 25 mm
+SHAPES = [("sphere", 40.0, None), ("paraboloid", 30.0, None), ("hyperboloid", 20.0, -2.5), ("ellipsoid", 40.0, -0.5)]
+SHAPES += [("ellipsoid", 40.0, 0.5)]
+
+
+def _mirror(kind, R, conic, apex=(0.0, 0.0, 60.0), axis=(0.0, 0.0, 1.0)):
+    return ConicMirror.of_kind(kind, apex, axis, R, 25.0, conic)
+
+
+def _line_distance(point, direction, x):
+    d = direction / np.linalg.norm(direction)
+    v = x - point
+    return np.linalg.norm(v - (v @ d) * d)
+
+
+def _surface_samples(mirror, n, rng, max_frac=0.95):
+    """Surface points of ``mirror`` inside the rim (host)."""
+    from slcvjax._safe import orthonormal_basis
+
+    e1, e2 = (np.asarray(e) for e in orthonormal_basis(mirror.axis))
+    rho = float(mirror.radius) * max_frac * np.sqrt(rng.uniform(0, 1, n))
+    th = rng.uniform(0, 2 * np.pi, n)
+    s = np.asarray(mirror.sag(jnp.asarray(rho**2)))
+    return (
+        np.asarray(mirror.apex)
+        + rho[:, None] * (np.cos(th)[:, None] * e1 + np.sin(th)[:, None] * e2)
+        + s[:, None] * np.asarray(mirror.axis)
+    )
+
+
+def test_hyperboloid_with_the_camera_at_its_far_focus_is_central(rng):
+    """Every ray the camera (at the far focus) sees reflects along a line through the near focus."""
+    R, kappa = 20.0, -2.5
+    e = np.sqrt(-kappa)
+    far = R / (e - 1.0)  # the far focus, on the camera's side of the vertex
+    mirror = ConicMirror.of_kind("hyperboloid", (0.0, 0.0, far), (0.0, 0.0, 1.0), R, 25.0, kappa)
+    near = np.array([0.0, 0.0, far + R / (1.0 + e)])
+    for m in _surface_samples(mirror, 40, rng):
+        d = m / np.linalg.norm(m)
+        hit = intersect(mirror, jnp.zeros(3), jnp.asarray(d))
+        assert bool(hit.valid)
+        np.testing.assert_allclose(np.asarray(hit.point), m, atol=1e-9)
+        r = np.asarray(reflect(jnp.asarray(d), surface_normal(mirror, hit.point)))
+        assert _line_distance(m, r, near) < 1e-9
+
+
+def test_paraboloid_reflects_rays_along_its_axis_through_its_focus(rng):
+    R = 30.0
+    mirror = ConicMirror.of_kind("paraboloid", (0.0, 0.0, 60.0), (0.0, 0.0, 1.0), R, 25.0)
+    focus = np.array([0.0, 0.0, 60.0 + R / 2])
+    for m in _surface_samples(mirror, 30, rng):
+        origin = np.array([m[0], m[1], 0.0])
+        hit = intersect(mirror, jnp.asarray(origin), jnp.array([0.0, 0.0, 1.0]))
+        assert bool(hit.valid)
+        np.testing.assert_allclose(np.asarray(hit.point), m, atol=1e-9)
+        r = np.asarray(reflect(jnp.array([0.0, 0.0, 1.0]), surface_normal(mirror, hit.point)))
+        assert _line_distance(m, r, focus) < 1e-9
+    # the ray along the axis itself meets the vertex (the quadratic is linear there)
+    hit = intersect(mirror, jnp.zeros(3), jnp.array([0.0, 0.0, 1.0]))
+    assert bool(hit.valid)
+    np.testing.assert_allclose(np.asarray(hit.point), [0.0, 0.0, 60.0], atol=1e-12)
+
+
+def test_sphere_normal_points_from_its_centre(rng):
+    mirror = _mirror("sphere", 40.0, None)
+    centre = np.array([0.0, 0.0, 100.0])
+    for m in _surface_samples(mirror, 20, rng):
+        np.testing.assert_allclose(np.linalg.norm(m - centre), 40.0, rtol=1e-12)
+        n = np.asarray(surface_normal(mirror, jnp.asarray(m)))
+        np.testing.assert_allclose(n, (m - centre) / 40.0, atol=1e-12)
+
+
+@pytest.mark.parametrize(("kind", "R", "conic"), SHAPES)
+def test_projection_inverts_back_projection(kind, R, conic, rng):
+    """A pixel back-projected, a point taken along its reflected ray, projected again: the same
+    pixel; with the mirror off the camera's axis and tilted (a non-central camera)."""
+    cam = paper_camera()
+    mirror = _mirror(kind, R, conic, apex=(3.0, -2.0, 60.0), axis=(0.03, -0.02, 1.0))
+    uv = np.stack([np.asarray(project(cam, jnp.asarray(m))[0]) for m in _surface_samples(mirror, 12, rng)])
+    proj = jax.jit(lambda p: project_through_mirror(cam, mirror, p))
+    for px in uv:
+        ray = back_project(cam, mirror, jnp.asarray(px))
+        assert bool(ray.valid)
+        for dist in (80.0, 400.0):
+            p = np.asarray(ray.point) + dist * np.asarray(ray.direction)
+            res = proj(jnp.asarray(p))
+            assert bool(res.valid)
+            np.testing.assert_allclose(np.asarray(res.uv), px, atol=1e-6)
+            np.testing.assert_allclose(np.asarray(res.mirror_point), np.asarray(ray.point), atol=1e-6)
+
+
+@pytest.mark.parametrize(("kind", "R", "conic"), SHAPES[:4])
+def test_implicit_derivative_matches_finite_differences(kind, R, conic, rng):
+    cam = paper_camera()
+    mirror = _mirror(kind, R, conic, apex=(2.0, 1.0, 60.0), axis=(-0.02, 0.01, 1.0))
+    m = _surface_samples(mirror, 1, rng)[0]
+    ray = back_project(cam, mirror, project(cam, jnp.asarray(m))[0])
+    p = np.asarray(ray.point) + 150.0 * np.asarray(ray.direction)
+
+    def uv(x):  # over the point (3) and the mirror's pose (5)
+        return project_through_mirror(cam, mirror.retract(x[3:]), jnp.asarray(p) + x[:3]).uv
+
+    J = np.asarray(jax.jacfwd(uv)(jnp.zeros(8)))
+    h = 1e-5
+    fd = np.stack(
+        [
+            (np.asarray(uv(jnp.zeros(8).at[i].set(h))) - np.asarray(uv(jnp.zeros(8).at[i].set(-h)))) / (2 * h)
+            for i in range(8)
+        ],
+        axis=1,
+    )
+    np.testing.assert_allclose(J, fd, rtol=1e-5, atol=1e-6 * np.abs(fd).max())
+
+
+def test_points_off_the_mirror_are_invalid():
+    cam = paper_camera()
+    mirror = _mirror("hyperboloid", 20.0, -2.5)
+    # behind the mirror's surface (inside its body), on its axis and off it
+    for p in ([0.0, 0.0, 200.0], [5.0, 0.0, 90.0]):
+        assert not bool(project_through_mirror(cam, mirror, jnp.asarray(p)).valid)
+
+
+def test_of_kind_checks_the_shape():
+    with pytest.raises(ValueError, match="below -1"):
+        ConicMirror.of_kind("hyperboloid", (0, 0, 50), (0, 0, 1), 20.0, 25.0, -0.5)
+    with pytest.raises(ValueError, match="needs its conic constant"):
+        ConicMirror.of_kind("ellipsoid", (0, 0, 50), (0, 0, 1), 20.0, 25.0)
+    with pytest.raises(ValueError, match="widest circle"):
+        ConicMirror.of_kind("sphere", (0, 0, 50), (0, 0, 1), 20.0, 25.0)
+    with pytest.raises(ValueError, match="unknown mirror kind"):
+        ConicMirror.of_kind("torus", (0, 0, 50), (0, 0, 1), 20.0, 25.0)
+    assert ConicMirror.of_kind("paraboloid", (0, 0, 50), (0, 0, 1), 20.0, 25.0).kind == "paraboloid"
+
+
+def _conic_rig(kind="paraboloid", R=20.0, conic=None, n_lasers=5):
+    from slcvjax._rig import Rig
+    from slcvjax._simulate import paper_rig
+
+    base = paper_rig(n_lasers)
+    mirror = ConicMirror.of_kind(kind, [0.5, -0.3, 40.0], [0.015, -0.01, 1.0], R, 20.0, conic)
+    return Rig(base.camera, mirror, base.lasers)
+
+
+def test_conic_shapes_round_trip_through_the_files(tmp_path):
+    from slcvjax._io import (
+        Calibration,
+        FormatError,
+        read_calibration,
+        read_observations,
+        write_calibration,
+        write_observations,
+    )
+    from slcvjax._simulate import box_scene, paper_views, simulate
+
+    rig = _conic_rig("hyperboloid", 15.0, -2.0)
+    obs, truth = simulate(box_scene(rig, paper_views(3), n_chess_views=3), noise=0.0)
+    write_observations(tmp_path / "obs.json", obs)
+    back = read_observations(tmp_path / "obs.json")
+    assert back.mirror_shape == {"kind": "hyperboloid", "vertex_radius": 15.0, "radius": 20.0, "conic_constant": -2.0}
+    np.testing.assert_allclose(back.mirror_height, float(rig.mirror.height), rtol=1e-12)
+    write_calibration(tmp_path / "cal.json", Calibration(rig, truth.board_poses))
+    mir = read_calibration(tmp_path / "cal.json").rig.mirror
+    assert isinstance(mir, ConicMirror) and mir.kind == "hyperboloid"
+    for f in ("apex", "axis", "curvature", "conic", "radius"):
+        np.testing.assert_allclose(np.asarray(getattr(mir, f)), np.asarray(getattr(rig.mirror, f)), rtol=1e-12)
+
+    doc = json.loads((tmp_path / "obs.json").read_text())
+    doc["mirror_shape"]["conic_constant"] = -0.5
+    (tmp_path / "bad.json").write_text(json.dumps(doc))
+    with pytest.raises(FormatError, match=r"mirror_shape: a hyperboloid's conic constant is below -1"):
+        read_observations(tmp_path / "bad.json")
+    doc["mirror_shape"] = {"kind": "torus", "radius": 20.0}
+    (tmp_path / "bad.json").write_text(json.dumps(doc))
+    with pytest.raises(FormatError, match=r"mirror_shape.kind: unknown mirror kind 'torus'"):
+        read_observations(tmp_path / "bad.json")
+
+
+def test_a_paraboloid_rig_calibrates_near_its_bound():
+    """The whole pipeline (rim, PnP through the mirror, the joint passes) with a paraboloid."""
+    from slcvjax._calibrate import calibrate, cramer_rao, laser_errors
+    from slcvjax._simulate import box_scene, paper_views, simulate
+
+    scene = box_scene(_conic_rig(), paper_views(10), n_chess_views=6)
+    obs, truth = simulate(scene, noise=0.3, seed=5)
+    res = calibrate(obs)
+    assert res.passes[-1].converged
+    bound = cramer_rao(truth, obs, 0.3)
+    pos, ang = laser_errors(res.rig, truth.rig, bound["x_ref"])
+    assert np.sqrt(np.mean(pos**2)) < 3 * bound["position_rms_mm"]
+    assert np.sqrt(np.mean(ang**2)) < 3 * bound["direction_rms_rad"]
+    sd = np.sqrt(np.diag(np.asarray(res.cov.glob)))[9:12]
+    err = np.asarray(res.rig.mirror.apex) - np.asarray(truth.rig.mirror.apex)
+    assert np.all(np.abs(err) < 4 * sd), (err, sd)
+
+
+def test_rendering_refuses_a_conic_mirror(tmp_path):
+    from slcvjax._render import render_scene
+    from slcvjax._simulate import box_scene, paper_views
+
+    with pytest.raises(ValueError, match="cone mirror only"):
+        render_scene(box_scene(_conic_rig(), paper_views(2), n_chess_views=1), tmp_path)
