@@ -240,6 +240,7 @@ def calibrate(
     loss_scale: float | None = None,
     max_steps: int = 200,
     rigid: "bool | list[str]" = False,
+    mirror=None,
 ) -> CalibrationResult:
     """Calibrate the whole rig from observations (see the module docstring).
 
@@ -247,6 +248,9 @@ def calibrate(
         obs: the observations.
         camera: a known camera to start from (freeze it with ``freeze={"camera"}``);
             without it the intrinsics come from the direct chessboard views.
+        mirror: a known mirror (pose and shape) to start from instead of the rim's
+            (freeze it with ``"mirror"``; with the camera frozen too this evaluates a
+            calibration on held-out views: only the poses and the lasers are fitted).
         freeze: parameter blocks held fixed: camera, mirror, lasers, poses, chess_poses.
         loss: ``huber`` (default), ``cauchy`` or ``linear`` for the dots and spots.
         loss_scale: the robust loss's scale in px; by default 3 sigma, sigma estimated
@@ -259,7 +263,7 @@ def calibrate(
             reported.
     """
     group = rigid_group(obs, rigid)
-    res = _calibrate_lockstep([obs], camera, freeze, loss, loss_scale, max_steps, _solve_loop)[0]
+    res = _calibrate_lockstep([obs], camera, freeze, loss, loss_scale, max_steps, _solve_loop, mirror=mirror)[0]
     return _rigid_refine(res, obs, group, max_steps) if group else res
 
 
@@ -319,7 +323,7 @@ def calibrate_many(
     ``progress`` a bar counts the calibrations (in ``vmap`` they finish together, and the
     bar names the pass under way).
     """
-    kw = dict(camera=None, freeze=(), loss="huber", loss_scale=None, max_steps=200, rigid=False)
+    kw = dict(camera=None, freeze=(), loss="huber", loss_scale=None, max_steps=200, rigid=False, mirror=None)
     unknown = sorted(set(kwargs) - set(kw))
     if unknown:
         raise TypeError(f"calibrate_many: unexpected keyword(s) {', '.join(unknown)} (calibrate takes {', '.join(kw)})")
@@ -342,7 +346,7 @@ def calibrate_many(
                 raise ValueError(f"workers: expected at least 1, got {workers}")
 
             def one(o, group):
-                return rigid(_calibrate_lockstep([o], *args, _solve_loop)[0], o, group)
+                return rigid(_calibrate_lockstep([o], *args, _solve_loop, mirror=kw["mirror"])[0], o, group)
 
             out = []
             with ThreadPoolExecutor(workers) as pool:
@@ -351,7 +355,7 @@ def calibrate_many(
                     if bar is not None:
                         bar.update(1)
             return out
-        out = _calibrate_lockstep(observations, *args, _solve_vmap, bar=bar)
+        out = _calibrate_lockstep(observations, *args, _solve_vmap, bar=bar, mirror=kw["mirror"])
         out = [rigid(res, o, g) for res, o, g in zip(out, observations, groups, strict=True)]
         if bar is not None:
             bar.update(len(out))  # in lockstep they finish together
@@ -430,9 +434,9 @@ def _solve_vmap(jobs: list[tuple], loss: str, max_steps: int, size: int | None =
 class _Trial:
     """One calibration's state between the passes of :func:`_calibrate_lockstep`."""
 
-    def __init__(self, obs, camera, freeze, t0, fine: bool = False):
+    def __init__(self, obs, camera, freeze, t0, fine: bool = False, mirror=None):
         self.obs, self.t0 = obs, t0
-        st = staged(obs, camera=camera, pk=pack(obs))
+        st = staged(obs, camera=camera, pk=pack(obs), mirror=mirror)
         self.st, self.pk = st, st.packed  # spots without a board have one now
         self.t_staged = time.perf_counter() - t0
         if camera is not None and not st.chess_poses:
@@ -463,10 +467,12 @@ class _Trial:
         self.arr = self.layout.pad_packed(pk)
 
 
-def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, solver, bar=None):
+def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, solver, bar=None, mirror=None):
     """:func:`calibrate`'s passes for every observation set in step; ``solver`` runs a pass's solves."""
     freeze = set(freeze)
-    trials = [_Trial(o, camera, freeze, time.perf_counter(), fine=solver is _solve_vmap) for o in obs_list]
+    trials = [
+        _Trial(o, camera, freeze, time.perf_counter(), fine=solver is _solve_vmap, mirror=mirror) for o in obs_list
+    ]
     size = len(trials)
 
     def run(name, chosen, lasers_held, scale, kind_weight=None, rtol=_RTOL_START, pass_loss=None):
@@ -1424,7 +1430,9 @@ def to_calibration(result: CalibrationResult, obs: Observations) -> Calibration:
     stages = {
         "staged": {
             **_rig_json(Rig(st.camera, st.mirror, st.lasers)),
-            "reports": [{"stage": r.name, "rms": r.rms, "unit": r.unit, "notes": r.notes} for r in st.reports],
+            "reports": [
+                {"stage": r.name, "rms": _finite_or_none(r.rms), "unit": r.unit, "notes": r.notes} for r in st.reports
+            ],
         },
         "joint": {"passes": [p.__dict__ for p in result.passes], "timings_s": result.timings},
     }

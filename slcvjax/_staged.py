@@ -540,8 +540,9 @@ class Staged:
     packed: Packed | None = None
 
 
-def staged(obs: Observations, camera: Camera | None = None, pk: Packed | None = None) -> Staged:
-    """Run the four stages.  ``camera``: a known camera (skips the intrinsics stage)."""
+def staged(obs: Observations, camera: Camera | None = None, pk: Packed | None = None, mirror=None) -> Staged:
+    """Run the four stages.  ``camera``: a known camera (skips the intrinsics stage);
+    ``mirror``: a known mirror pose and shape (skips the rim stage)."""
     pk = pack(obs) if pk is None else pk
     if not obs.views:
         raise CalibrationError("views: no catadioptric views")
@@ -552,8 +553,11 @@ def staged(obs: Observations, camera: Camera | None = None, pk: Packed | None = 
     if camera is None:
         camera, chess, rep = calibrate_intrinsics(obs)
         reports.append(rep)
-    rim = np.concatenate([v.rim for v in obs.views]) if obs.views else np.zeros((0, 2))
-    mirrors, rep_m = mirror_from_rim(camera, rim, obs.mirror_radius, obs.mirror_height, obs.mirror_shape)
+    if mirror is not None:
+        mirrors, rep_m = [mirror], StageReport("mirror", float("nan"), "px", ["given (not estimated from the rim)"])
+    else:
+        rim = np.concatenate([v.rim for v in obs.views]) if obs.views else np.zeros((0, 2))
+        mirrors, rep_m = mirror_from_rim(camera, rim, obs.mirror_radius, obs.mirror_height, obs.mirror_shape)
     best = None
     for i, m in enumerate(mirrors):
         poses, rep_p = board_poses(camera, m, pk)

@@ -326,14 +326,28 @@ def _cmd_calibrate(args) -> int:
 
     inputs = [Path(p) for p in args.inputs]
     observations = _read_inputs(inputs)  # all read (and image folders detected) before any calibration
+    if args.camera and args.start_from:
+        raise FormatError("--camera and --from both give the camera: give one")
     camera = read_calibration(args.camera).rig.camera if args.camera else None
+    mirror = None
+    if args.start_from:
+        start = read_calibration(args.start_from).rig
+        if start.mirror is None:
+            raise FormatError(f"{args.start_from}: mirror: a camera-only calibration has no mirror to start from")
+        camera, mirror = start.camera, start.mirror
     freeze = tuple(f for f in (args.freeze or "").split(",") if f)
     results = []
     for path, obs in zip(inputs, observations, strict=True):
         t0 = time.perf_counter()
         try:
             res, obs, notes = calibrate_detected(
-                obs, camera=camera, freeze=freeze, loss=args.loss, loss_scale=args.loss_scale, rigid=args.rigid
+                obs,
+                camera=camera,
+                mirror=mirror,
+                freeze=freeze,
+                loss=args.loss,
+                loss_scale=args.loss_scale,
+                rigid=args.rigid,
             )
         except CalibrationError as e:
             raise FormatError(f"{path}: {e}") from None
@@ -777,6 +791,12 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("inputs", nargs="+", help="slcv-observations/1 file(s) or image folder(s) with setup.json")
     c.add_argument("--out", required=True, help="output file (one input) or directory (several)")
     c.add_argument("--camera", help="a slcv-calibration/1 file whose camera starts the calibration")
+    c.add_argument(
+        "--from",
+        dest="start_from",
+        help="a slcv-calibration/1 file whose camera and mirror start the calibration (with --freeze camera,mirror: "
+        "only the poses and lasers are fitted, the held-out evaluation of that calibration)",
+    )
     c.add_argument("--freeze", help="comma-separated blocks to hold fixed: camera, mirror, lasers, poses, chess_poses")
     c.add_argument("--loss", default="huber", choices=["huber", "cauchy", "linear"], help="robust loss (default huber)")
     c.add_argument("--loss-scale", type=float, default=None, help="robust loss scale in px (default 3 sigma)")
