@@ -26,6 +26,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
 from ._newton import newton_implicit, newton_residual_norm
+from ._revolution import retract_pose, rim_circle
 from ._safe import orthonormal_basis, safe_div, safe_norm, safe_normalize, safe_sqrt
 
 KINDS = ("sphere", "paraboloid", "hyperboloid", "ellipsoid")
@@ -113,15 +114,12 @@ class ConicMirror(eqx.Module):
 
     def retract(self, delta: Float[Array, "5"]) -> "ConicMirror":
         """``apex += delta[:3]``; the axis tilts by ``delta[3:]`` (radians) in its tangent plane."""
-        e1, e2 = orthonormal_basis(self.axis)
-        axis = safe_normalize(self.axis + delta[3] * e1 + delta[4] * e2)
-        return ConicMirror(self.apex + delta[:3], axis, self.curvature, self.conic, self.radius)
+        apex, axis = retract_pose(self.apex, self.axis, delta)
+        return ConicMirror(apex, axis, self.curvature, self.conic, self.radius)
 
     def rim_points(self, angles: Float[Array, " n"]) -> Float[Array, "n 3"]:
         """Points of the rim circle at the given azimuths, camera frame."""
-        e1, e2 = orthonormal_basis(self.axis)
-        centre = self.apex + self.height * self.axis
-        return centre + self.radius * (jnp.cos(angles)[:, None] * e1 + jnp.sin(angles)[:, None] * e2)
+        return rim_circle(self.apex, self.axis, self.height, self.radius, angles)
 
     # ------------------------------------------------------------------ geometry
 

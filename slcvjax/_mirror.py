@@ -28,6 +28,7 @@ from ._camera import Camera, in_image, pixel_to_ray, project
 from ._conic import KINDS as CONIC_KINDS
 from ._conic import ConicMirror
 from ._newton import newton_implicit, newton_residual_norm
+from ._revolution import retract_pose, rim_circle
 from ._safe import orthonormal_basis, safe_div, safe_norm, safe_normalize, safe_sqrt
 
 
@@ -66,15 +67,12 @@ class ConeMirror(eqx.Module):
 
     def retract(self, delta: Float[Array, "5"]) -> "ConeMirror":
         """``apex += delta[:3]``; the axis tilts by ``delta[3:]`` (radians) in its tangent plane."""
-        e1, e2 = orthonormal_basis(self.axis)
-        axis = safe_normalize(self.axis + delta[3] * e1 + delta[4] * e2)
-        return ConeMirror(self.apex + delta[:3], axis, self.radius, self.height)
+        apex, axis = retract_pose(self.apex, self.axis, delta)
+        return ConeMirror(apex, axis, self.radius, self.height)
 
     def rim_points(self, angles: Float[Array, " n"]) -> Float[Array, "n 3"]:
         """Points of the base circle (the rim) at the given azimuths, camera frame."""
-        e1, e2 = orthonormal_basis(self.axis)
-        centre = self.apex + self.height * self.axis
-        return centre + self.radius * (jnp.cos(angles)[:, None] * e1 + jnp.sin(angles)[:, None] * e2)
+        return rim_circle(self.apex, self.axis, self.height, self.radius, angles)
 
 
 MIRROR_KINDS = ("cone",) + CONIC_KINDS
