@@ -1,0 +1,63 @@
+"""The joint LM's losses against their closed forms, and its result codes: converged at the
+truth, max_steps when stopped early, an unknown loss refused."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from slcvjax._calibrate import _solve
+from slcvjax._lm import CONVERGED, MAX_STEPS, Params, loss_index, make_masks, pad_masks, pad_params, robust_cost
+from slcvjax._problem import Layout, pack, stack_poses
+from slcvjax._simulate import box_scene, paper_rig, paper_views, simulate
+
+
+@pytest.mark.parametrize("c", [0.5, 2.0])
+def test_losses_match_their_closed_forms(c):
+    r = np.linspace(0.0, 6.0 * c, 61)
+    sq = jnp.asarray(r**2)
+    huber = np.where(r <= c, 0.5 * r**2, c * r - 0.5 * c * c)
+    cauchy = 0.5 * c * c * np.log1p(r**2 / (c * c))
+    for name, ref in (("huber", huber), ("cauchy", cauchy), ("linear", 0.5 * r**2)):
+        rho, w = robust_cost(sq, name, c)
+        np.testing.assert_allclose(rho, ref, rtol=1e-12, atol=1e-15)
+        # the IRLS weight is 2 d rho / d sq (away from sq = 0, where the derivative is one-sided)
+        drho = jax.vmap(jax.grad(lambda s, name=name: robust_cost(s, name, c)[0]))(sq[1:])
+        np.testing.assert_allclose(w[1:], 2.0 * drho, rtol=1e-9)
+        # a traced loss index selects the same
+        rho_t, w_t = robust_cost(sq, jnp.asarray(loss_index(name)), c)
+        np.testing.assert_allclose(rho_t, rho, rtol=1e-15)
+        np.testing.assert_allclose(w_t, w, rtol=1e-15)
+    assert np.all(cauchy <= huber + 1e-15) and np.all(huber <= 0.5 * r**2 + 1e-15)
+    with pytest.raises(ValueError, match="unknown loss 'l2'"):
+        robust_cost(sq, "l2", c)
+
+
+@pytest.fixture(scope="module")
+def problem():
+    obs, truth = simulate(box_scene(paper_rig(3), paper_views(4), n_chess_views=4), noise=0.0)
+    pk = pack(obs)
+    poses = stack_poses([truth.board_poses[v][b] for v, b in pk.pose_keys])
+    chess = stack_poses([truth.calibration_view_poses[c] for c in pk.chess_keys])
+    params = Params(truth.rig, poses, chess)
+    layout = Layout.of(pk)
+    return params, layout.pad_packed(pk), pad_masks(layout, make_masks(params)), layout
+
+
+def test_converged_at_the_truth(problem):
+    params, arr, masks, layout = problem
+    res = _solve(pad_params(layout, params), arr, masks, "linear", 1.0, 50)
+    assert int(res.result) == CONVERGED
+    assert float(res.cost) < 1e-16 and int(res.steps) <= 3
+
+
+def test_max_steps_when_stopped_early(problem):
+    params, arr, masks, layout = problem
+    delta = np.zeros(params.rig.tangent_dim)
+    delta[:4] = [4.0, -3.0, 2.0, 2.0]  # fx, fy, cx, cy off by a few px
+    start = Params(params.rig.retract(jnp.asarray(delta)), params.poses, params.chess)
+    res = _solve(pad_params(layout, start), arr, masks, "huber", 1.0, 1)
+    assert int(res.result) == MAX_STEPS and int(res.steps) == 1
+    assert float(res.cost) < float(res.initial_cost)
+    full = _solve(pad_params(layout, start), arr, masks, "huber", 1.0, 100)
+    assert int(full.result) == CONVERGED and float(full.cost) < 1e-12 * float(full.initial_cost)
