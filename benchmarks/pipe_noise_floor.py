@@ -1,6 +1,6 @@
 """Monte Carlo of the pipe experiment: measurement against the truth beside its reported std.
 
-Run: ``python benchmarks/pipe_noise_floor.py [--noise 0.1,0.3,0.5,0.9] [--trials 20]
+Run: ``python benchmarks/pipe_noise_floor.py [--noise 0.1,0.3,0.5,0.9] [--trials 20] [--rigid]
 [--calibrations 4] [--out FILE]``.
 
 The paper preset's true rig sits in a 150 mm pipe at 16 poses; each trial draws new spot noise.
@@ -62,10 +62,10 @@ def figures(raw: dict) -> dict:
     }
 
 
-def calibrated(noise: float, seed: int):
-    """A calibration of the preset's box at ``noise`` px: the rig and its covariance."""
+def calibrated(noise: float, seed: int, rigid: bool = False):
+    """A calibration of the preset's box at ``noise`` px (``rigid``: the rigid box model): rig and covariance."""
     obs, _ = simulate(paper_scene(), noise=noise, seed=seed)
-    res = calibrate(obs)
+    res = calibrate(obs, rigid=rigid)
     _, cov = measurement_inputs("<calibration>", to_calibration(res, obs))
     return res.rig, cov
 
@@ -84,6 +84,7 @@ def main() -> None:
     ap.add_argument("--noise", default="0.1,0.3,0.5,0.9")
     ap.add_argument("--trials", type=int, default=20, help="pipe trials per level and calibration kind")
     ap.add_argument("--calibrations", type=int, default=4, help="calibrations per level (the trials split over them)")
+    ap.add_argument("--rigid", action="store_true", help="calibrate with the rigid target box model")
     ap.add_argument("--out", default="benchmarks/results/pipe_noise_floor.json")
     args = ap.parse_args()
     if args.trials < args.calibrations or args.calibrations < 1:
@@ -98,14 +99,20 @@ def main() -> None:
         print(_line("exact", noise, exact), flush=True)
         parts = []
         for c, chunk in enumerate(np.array_split(seeds, args.calibrations)):
-            rig, cov = calibrated(noise, seed=1000 + c)
+            rig, cov = calibrated(noise, seed=1000 + c, rigid=args.rigid)
             parts.append(measure(rig, cov, scene, noise, chunk))
         pooled = {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k != "trials"}
         cal = figures(pooled | {"trials": args.trials})
         print(_line("calibrated", noise, cal), flush=True)
         per_cal = [figures(p) for p in parts]
         rows.append({"noise_px": noise, "exact": exact, "calibrated": cal, "per_calibration": per_cal})
-    out = {"machine": machine(), "seconds": time.perf_counter() - t0, "pipe_diameter_mm": 150.0, "levels": rows}
+    out = {
+        "machine": machine(),
+        "seconds": time.perf_counter() - t0,
+        "pipe_diameter_mm": 150.0,
+        "rigid_box": args.rigid,
+        "levels": rows,
+    }
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(out, indent=1))
     print(f"wrote {args.out}")

@@ -171,7 +171,10 @@ def _cmd_demo(args) -> int:
         obs = exact
     print(f"[{next(step)}/{steps}] calibrate: staged, then joint (the first run compiles, about a minute)", flush=True)
     t1 = time.perf_counter()
-    res, obs, notes = calibrate_detected(obs)
+    rigid = args.rigid
+    if rigid:
+        print("  the box's walls as one rigid box: one pose per wall, one sensor pose per view")
+    res, obs, notes = calibrate_detected(obs, rigid=rigid)
     _print_placed(notes)
     timings["calibration"] = time.perf_counter() - t1
     cal = to_calibration(res, obs)
@@ -181,7 +184,7 @@ def _cmd_demo(args) -> int:
     # the bound at the noise of the points and spots (the detector's, from the residuals, for images)
     sigma = robust_sigma(res.params, res.packed) if images else max(args.noise, 1e-3)
     # with the boards the calibration gave the spots detected without one (else they are left out)
-    bound = cramer_rao(truth, obs, sigma, packed=res.packed)
+    bound = cramer_rao(truth, obs, sigma, packed=res.packed, rigid=rigid)
     pos, ang = laser_errors(res.rig, truth.rig, bound["x_ref"])
     st = res.staged
     pos_s, ang_s = laser_errors(Rig(st.camera, st.mirror, st.lasers), truth.rig, bound["x_ref"])
@@ -910,6 +913,11 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--image-noise", type=float, default=1.0, help="sensor noise of the images, grey levels (default 1)")
     d.add_argument(
         "--no-images", action="store_true", help="calibrate the simulated observations directly (no render or detect)"
+    )
+    d.add_argument(
+        "--rigid",
+        action="store_true",
+        help="calibrate with the rigid target box model (one pose per wall, one sensor pose per view)",
     )
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("--views", type=int, default=16, help="catadioptric views (default 16)")
