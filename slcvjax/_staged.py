@@ -451,8 +451,13 @@ def fit_lasers(
     keeps its label (a plain least-squares line per laser).
 
     Raises :class:`CalibrationError` naming a laser whose consistent points cannot fix a
-    line (fewer than 2 points, or all within 1 mm of each other).
+    line (fewer than 2 points, or all within 1 mm of each other).  With no lasers, no lines.
     """
+    if n_lasers == 0:
+        n_s = int(pk.counts[1])
+        none = Lasers.create(np.zeros((0, 3)), np.zeros((0, 3)))
+        report = StageReport("lasers", float("nan"), "px", ["no lasers"])
+        return LaserFit(none, report, np.full(n_s, -1), np.zeros((n_s, 0)), float("inf"))
     rays, metric = map_padded(_rays_with_pixel_metric, camera, mirror, rows=pk.spot_pixels)
     org, dirs, ok = np.asarray(rays.point), np.asarray(rays.direction), np.asarray(rays.valid)
     metric = np.asarray(metric)

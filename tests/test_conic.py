@@ -215,3 +215,25 @@ def test_rendering_refuses_a_conic_mirror(tmp_path):
 
     with pytest.raises(ValueError, match="cone mirror only"):
         render_scene(box_scene(_conic_rig(), paper_views(2), n_chess_views=1), tmp_path)
+
+
+def test_a_catadioptric_camera_without_lasers_calibrates_from_the_cli(tmp_path, capsys):
+    """A hyperboloid rig with no lasers (``n_lasers: 0``): the file read, the rig calibrated,
+    the calibration written with no lasers and its mirror within its reported std."""
+    from slcvjax import cli
+    from slcvjax._io import write_observations
+    from slcvjax._lasers import Lasers
+    from slcvjax._rig import Rig
+    from slcvjax._simulate import box_scene, paper_views, simulate
+
+    rig = _conic_rig("hyperboloid", 15.0, -2.0)
+    rig = Rig(rig.camera, rig.mirror, Lasers.create(np.zeros((0, 3)), np.zeros((0, 3))))
+    obs, truth = simulate(box_scene(rig, paper_views(8), n_chess_views=6), noise=0.3, seed=4)
+    write_observations(tmp_path / "obs.json", obs)
+    assert cli.main(["calibrate", str(tmp_path / "obs.json"), "--out", str(tmp_path / "cal.json")]) == 0
+    doc = json.loads((tmp_path / "cal.json").read_text())
+    assert doc["lasers"] == [] and doc["mirror"]["kind"] == "hyperboloid"
+    apex = np.asarray(doc["mirror"]["apex"])
+    sd = np.asarray(doc["uncertainty"]["mirror_std"]["apex_mm"])
+    assert np.all(np.abs(apex - np.asarray(truth.rig.mirror.apex)) < 4 * sd)
+    assert "laser" not in capsys.readouterr().err
