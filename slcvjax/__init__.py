@@ -14,14 +14,9 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 from . import _cache  # noqa: E402
+from ._cache import compilation_cache_dir  # noqa: E402
 
-_CACHE_DIR = _cache.enable()
-
-
-def compilation_cache_dir():
-    """The folder of the persistent compilation cache in use (a ``pathlib.Path``), or None where it is off."""
-    return _CACHE_DIR
-
+_cache.enable()
 
 from ._calibrate import (  # noqa: E402
     CalibrationResult,

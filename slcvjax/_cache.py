@@ -68,8 +68,23 @@ def _writable(folder: Path) -> str | None:
     return None
 
 
+_IN_USE: Path | None = None
+
+
+def compilation_cache_dir() -> Path | None:
+    """The folder of the persistent compilation cache in use (a ``pathlib.Path``), or None where it is off."""
+    return _IN_USE
+
+
 def enable() -> Path | None:
-    """Turn the persistent compilation cache on in :func:`chosen_dir`; returns the folder (None: off)."""
+    """Turn the persistent compilation cache on in :func:`chosen_dir`; returns the folder (None: off),
+    which :func:`compilation_cache_dir` gives from then on."""
+    global _IN_USE
+    _IN_USE = _enable()
+    return _IN_USE
+
+
+def _enable() -> Path | None:
     folder = chosen_dir()
     if folder is not None and _jax_own():
         return folder

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
 from ._newton import newton_implicit, newton_residual_norm
-from ._revolution import retract_pose, rim_circle
+from ._revolution import RayHit, retract_pose, rim_circle
 from ._safe import orthonormal_basis, safe_div, safe_norm, safe_normalize, safe_sqrt
 
 KINDS = ("sphere", "paraboloid", "hyperboloid", "ellipsoid")
@@ -130,13 +130,11 @@ class ConicMirror(eqx.Module):
         return safe_normalize(2.0 * self.sag_slope(jnp.dot(perp, perp)) * perp - self.axis)
 
     def intersect(self, origin: Float[Array, "3"], direction: Float[Array, "3"], rim_margin: float = 0.0):
-        """First intersection of the ray ``origin + t d`` (t > 0) with the mirror (``._mirror.RayHit``).
+        """First intersection of the ray ``origin + t d`` (t > 0) with the mirror (:class:`._revolution.RayHit`).
 
         The quadric ``c (|q|^2 + kappa s^2) - 2 s = 0`` along the ray is a quadratic in ``t``,
         solved without cancellation; a root counts on the vertex's sheet (``0 <= s``,
         ``(1 + kappa) c s < 1``) within the rim (``rho <= r (1 + rim_margin)``)."""
-        from ._mirror import RayHit
-
         a, c, kap = self.axis, self.curvature, self.conic
         w = origin - self.apex
         da, wa = jnp.dot(direction, a), jnp.dot(w, a)

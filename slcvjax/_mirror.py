@@ -28,7 +28,7 @@ from ._camera import Camera, in_image, pixel_to_ray, project
 from ._conic import KINDS as CONIC_KINDS
 from ._conic import ConicMirror
 from ._newton import newton_implicit, newton_residual_norm
-from ._revolution import retract_pose, rim_circle
+from ._revolution import RayHit, retract_pose, rim_circle
 from ._safe import orthonormal_basis, safe_div, safe_norm, safe_normalize, safe_sqrt
 
 
@@ -121,14 +121,6 @@ def surface_normal(mirror: ConeMirror, x: Float[Array, "3"]) -> Float[Array, "3"
 def reflect(d: Float[Array, "3"], n: Float[Array, "3"]) -> Float[Array, "3"]:
     """Mirror reflection of direction ``d`` about the unit normal ``n``."""
     return d - 2.0 * jnp.dot(d, n) * n
-
-
-class RayHit(NamedTuple):
-    """Where a ray meets the mirror: ray parameter, point, and validity."""
-
-    t: Float[Array, ""]
-    point: Float[Array, "3"]
-    valid: Bool[Array, ""]
 
 
 def intersect(mirror: ConeMirror, origin: Float[Array, "3"], direction: Float[Array, "3"]) -> RayHit:

@@ -24,6 +24,8 @@ import jax.numpy as jnp
 import jaxlib
 import numpy as np
 
+from ._cache import compilation_cache_dir
+
 STATS = {"exported": 0, "loaded": 0}
 # Programs with loops run one at a time: two executed at once from threads
 # (``calibrate_many(..., workers=2)``) wedged XLA's CPU thread pool for good in
@@ -49,8 +51,6 @@ def _dtype(x):
 
 
 def _folder() -> Path | None:
-    from . import compilation_cache_dir
-
     d = compilation_cache_dir()
     return None if d is None else Path(d) / "traces"
 

@@ -1,7 +1,9 @@
-"""What every mirror of revolution shares: its 5-DOF pose increment and its rim circle."""
+"""What every mirror of revolution shares: its 5-DOF pose increment, its rim circle, a ray's hit."""
+
+from typing import NamedTuple
 
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float
 
 from ._safe import orthonormal_basis, safe_normalize
 
@@ -17,3 +19,11 @@ def rim_circle(apex, axis, height, radius, angles: Float[Array, " n"]) -> Float[
     e1, e2 = orthonormal_basis(axis)
     centre = apex + height * axis
     return centre + radius * (jnp.cos(angles)[:, None] * e1 + jnp.sin(angles)[:, None] * e2)
+
+
+class RayHit(NamedTuple):
+    """Where a ray meets the mirror: ray parameter, point, and validity."""
+
+    t: Float[Array, ""]
+    point: Float[Array, "3"]
+    valid: Bool[Array, ""]
