@@ -169,7 +169,11 @@ def _sigmas_of(norm, kind, ok, min_count: int = 10) -> np.ndarray:
 
 def robust_sigma(params: Params, pk: Packed) -> float:
     """Noise sigma (px) from the median 2D residual norm of the dots, spots and corners."""
-    norm, kind, ok = _per_observation(params, pk)
+    return _robust_sigma_of(*_per_observation(params, pk))
+
+
+def _robust_sigma_of(norm, kind, ok) -> float:
+    """:func:`robust_sigma` of a per-observation table (``_per_observation``'s)."""
     sel = ok & (kind != 2)
     if not sel.any():
         return 1.0
@@ -632,7 +636,7 @@ def _rigid_refine(res: CalibrationResult, obs: Observations, group: list[str], m
     pk = res.packed
     n_d = int(pk.counts[0])
     dots_per_pose = np.bincount(np.asarray(pk.dot_pose)[:n_d], minlength=pk.n_poses)
-    model = box_model(pk, group, obs.boards, usable=np.flatnonzero(dots_per_pose >= MIN_BOARD_DOTS))
+    model = box_model(pk, group, usable=np.flatnonzero(dots_per_pose >= MIN_BOARD_DOTS))
     params = rigid_params(model, pk.pose_keys, unstack_poses(res.params.poses), res.rig, res.params.chess)
     masks = rigid_masks(model, res.masks, pk.n_poses)
     passes, repairs = list(res.passes), list(res.repairs)
@@ -667,8 +671,7 @@ def _rigid_refine(res: CalibrationResult, obs: Observations, group: list[str], m
         n_d = int(cur.counts[0])
         pose_d = np.asarray(cur.dot_pose)[:n_d]
         dot_norm = np.where(ok[:n_d], norm[:n_d], np.inf)
-        sigma = robust_sigma(params, pr)
-        limit = max(MISFIT_SIGMAS * sigma, MISFIT_MIN_PX)
+        limit = max(MISFIT_SIGMAS * _robust_sigma_of(norm, kind, ok), MISFIT_MIN_PX)
         medians = {int(k): float(np.median(dot_norm[pose_d == k])) for k in np.unique(pose_d)}
         new = [k for k, m in medians.items() if m > limit and k not in model.outside]
         if not new or round_ == MISFIT_ROUNDS:
@@ -691,8 +694,8 @@ def _rigid_refine(res: CalibrationResult, obs: Observations, group: list[str], m
         left += new
         n_s = int(cur.counts[1])
         cur = cur.select(~np.isin(pose_d, left), ~np.isin(np.asarray(cur.spot_pose)[:n_s], left))
-    pr = model.packed(cur)
-    layout, lin = _linearisation(params, pr, masks, res.loss, res.scale)
+    # linearised again at the solution: the rim rows normalised there, as the free covariance is
+    layout, lin = _linearisation(params, model.packed(cur), masks, res.loss, res.scale)
     cov = _covariance_of_linearisation(lin, pad_masks(layout, masks), None)
     cov = cov._replace(blocks=layout.unpad_blocks(cov.blocks))
     pose_cov = board_pose_covariances(model, params, lin, masks, cov, layout)
@@ -1252,10 +1255,9 @@ def cramer_rao(
     out = {}
     group = rigid_group(obs, rigid)
     if group:
-        model = box_model(pk, group, obs.boards)
-        free_masks = masks
+        model = box_model(pk, group)
         params = rigid_params(model, pk.pose_keys, unstack_poses(poses), truth.rig, chess_stack)
-        masks = rigid_masks(model, free_masks, pk.n_poses)
+        masks = rigid_masks(model, masks, pk.n_poses)
         pk = model.packed(pk)
     # plain least squares (Huber at 1e9 px), sharing the compiled covariance of calibrate()
     cov = covariance_of(params, pk, masks, "huber", 1e9, sigma=sigma)

@@ -65,18 +65,14 @@ class BoxModel:
         return dataclasses.replace(pk, pair_block=self.pair_block, pair_box=self.pair_box)
 
 
-def box_model(pk: Packed, group, known_boards=None, usable=None) -> BoxModel:
-    """The rigid box model of ``pk``'s board poses for the board names ``group``.
+def box_model(pk: Packed, group, usable=None) -> BoxModel:
+    """The rigid box model of ``pk``'s board poses for the board names ``group`` (known boards:
+    ``._calibrate.rigid_group`` checks the names).
 
-    ``known_boards``: the observations' board names, to name a misspelt member of the group.
     ``usable``: the board poses (indices into ``pose_keys``) with observations to place them
     (by default all); the others keep their own pose block, which nothing moves.
     """
     group = list(group)
-    if known_boards is not None:
-        for i, b in enumerate(group):
-            if b not in known_boards:
-                raise ValueError(f"rigid_boards[{i}]: unknown board {b!r} (known: {', '.join(sorted(known_boards))})")
     all_keys = pk.pose_keys
     use = set(range(len(all_keys))) if usable is None else set(usable)
     keys = [k for i, k in enumerate(all_keys) if i in use]

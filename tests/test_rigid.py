@@ -33,7 +33,7 @@ def small():
     poses = [truth.board_poses[v][b] for v, b in pk.pose_keys]
     chess = stack_poses([truth.calibration_view_poses[c] for c in pk.chess_keys])
     free = Params(truth.rig, stack_poses(poses), chess)
-    model = box_model(pk, obs.extra["rigid_boards"], obs.boards)
+    model = box_model(pk, obs.extra["rigid_boards"])
     rigid = rigid_params(model, pk.pose_keys, poses, truth.rig, chess)
     return obs, truth, pk, free, model, rigid
 
