@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._camera import Camera
+from ._central import central_start
 from ._io import Calibration, Observations
 from ._lasers import Lasers, line_plane_intersection
 from ._lm import (
@@ -242,7 +243,7 @@ def calibrate(
     freeze: tuple[str, ...] | set[str] = (),
     loss: str = "huber",
     loss_scale: float | None = None,
-    max_steps: int = 200,
+    max_steps: int = 500,
     rigid: "bool | list[str]" = False,
     mirror=None,
 ) -> CalibrationResult:
@@ -256,7 +257,8 @@ def calibrate(
             (freeze it with ``"mirror"``; with the camera frozen too this evaluates a
             calibration on held-out views: only the poses and the lasers are fitted).
         freeze: parameter blocks held fixed: camera, mirror, lasers, poses, chess_poses.
-        loss: ``huber`` (default), ``cauchy`` or ``linear`` for the dots and spots.
+        loss: ``huber`` (default), ``cauchy`` or ``linear`` for the dots and spots; ``linear`` is
+            the plain least-squares fit: no observation is left out as a gross outlier.
         loss_scale: the robust loss's scale in px; by default 3 sigma, sigma estimated
             robustly from the residuals.
         max_steps: the most LM linearisations per pass.
@@ -327,7 +329,7 @@ def calibrate_many(
     ``progress`` a bar counts the calibrations (in ``vmap`` they finish together, and the
     bar names the pass under way).
     """
-    kw = dict(camera=None, freeze=(), loss="huber", loss_scale=None, max_steps=200, rigid=False, mirror=None)
+    kw = dict(camera=None, freeze=(), loss="huber", loss_scale=None, max_steps=500, rigid=False, mirror=None)
     unknown = sorted(set(kwargs) - set(kw))
     if unknown:
         raise TypeError(f"calibrate_many: unexpected keyword(s) {', '.join(unknown)} (calibrate takes {', '.join(kw)})")
@@ -440,7 +442,17 @@ class _Trial:
 
     def __init__(self, obs, camera, freeze, t0, fine: bool = False, mirror=None):
         self.obs, self.t0 = obs, t0
-        st = staged(obs, camera=camera, pk=pack(obs), mirror=mirror)
+        pk = pack(obs)
+        start = None
+        if camera is None and mirror is None and not obs.calibration_views and obs.mirror_shape is not None:
+            # seen through the mirror only: a central rig first (._central)
+            shape = obs.mirror_shape
+            camera, mirror, start = central_start(
+                pk, obs.image_size, shape["kind"], shape["vertex_radius"], shape.get("conic_constant"), shape["radius"]
+            )
+        st = staged(obs, camera=camera, pk=pk, mirror=mirror)
+        if start is not None:
+            st.reports.insert(0, start)
         self.st, self.pk = st, st.packed  # spots without a board have one now
         self.t_staged = time.perf_counter() - t0
         if camera is not None and not st.chess_poses:
@@ -591,6 +603,7 @@ def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, s
                 rtol=_RTOL_FINAL,
                 pass_loss=pass_loss,
             ),
+            find=loss != "linear",
         )
     # a pose carried after B from a board still wrong then may be wrong yet: where a board
     # fits badly, the other starts again, and C again where a board turned, until none turns
@@ -807,7 +820,7 @@ def _outliers(tr: "_Trial", pk: Packed) -> tuple[np.ndarray, np.ndarray, np.ndar
     return bad, norm, kind, limit, ok
 
 
-def _leave_out(tr: "_Trial", starts, rerun, rounds: int = 3) -> None:
+def _leave_out(tr: "_Trial", starts, rerun, rounds: int = 3, find: bool = True) -> None:
     """Leave out the trial's gross outliers: the dots and spots beyond :data:`OUTLIER_SIGMAS`
     sigmas (:func:`_outliers`).  Where there are any, the final pass runs first with the
     redescending Cauchy loss (``rerun("cauchy", scale)``, first at :data:`CAUCHY_WIDEN` times the
@@ -823,7 +836,8 @@ def _leave_out(tr: "_Trial", starts, rerun, rounds: int = 3) -> None:
     not fitted residuals: those predicted near their line (:func:`_predicted_fit`) come back
     and are judged with the rest (a board pose wrong when the lines were fitted made them look
     wrong), before the outliers are looked for and again once they are out (:func:`_bring_back`).  What stays
-    left out is recorded in ``tr.repairs``."""
+    left out is recorded in ``tr.repairs``.  ``find=False`` (the linear loss: a plain least-squares
+    fit) looks for no outlier; only the spots set aside by their lines are judged again."""
     scale = tr.scale
     none_aside = np.zeros(int(tr.pk.counts[0]) + int(tr.pk.counts[1]), bool)
     full, aside = tr.set_aside if tr.set_aside is not None else (tr.pk, none_aside)
@@ -832,7 +846,7 @@ def _leave_out(tr: "_Trial", starts, rerun, rounds: int = 3) -> None:
         _use_all_but(tr, full, out)
         rerun(None, scale)
     whole = np.zeros_like(out)
-    if not np.array_equal(_outliers(tr, full)[0], out):  # more than what stays set aside
+    if find and not np.array_equal(_outliers(tr, full)[0], out):  # more than what stays set aside
         out, whole = _robust_rounds(tr, full, out, starts, rerun, scale, rounds)
     _readmit(tr, full, aside, out)
     if not out.any():

@@ -801,7 +801,12 @@ def build_parser() -> argparse.ArgumentParser:
         "only the poses and lasers are fitted, the held-out evaluation of that calibration)",
     )
     c.add_argument("--freeze", help="comma-separated blocks to hold fixed: camera, mirror, lasers, poses, chess_poses")
-    c.add_argument("--loss", default="huber", choices=["huber", "cauchy", "linear"], help="robust loss (default huber)")
+    c.add_argument(
+        "--loss",
+        default="huber",
+        choices=["huber", "cauchy", "linear"],
+        help="robust loss (default huber); linear: plain least squares, no outlier left out",
+    )
     c.add_argument("--loss-scale", type=float, default=None, help="robust loss scale in px (default 3 sigma)")
     c.add_argument(
         "--rigid",

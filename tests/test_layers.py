@@ -11,7 +11,7 @@ LAYERS = [
     ("support", {"_safe", "_cache", "_persist"}),
     ("geometry", {"_pose", "_newton", "_camera", "_lasers", "_revolution", "_conic", "_mirror", "_rig"}),
     ("observations", {"_io", "_problem", "_simulate"}),
-    ("calibration", {"_lm", "_staged", "_rigid", "_calibrate", "_implicit", "_chessboard"}),
+    ("calibration", {"_lm", "_staged", "_central", "_rigid", "_calibrate", "_implicit", "_chessboard"}),
     ("measurement", {"_measure"}),
     ("images", {"_detect", "_pipe", "_render", "_centroids"}),
     ("plots", {"_plots"}),
