@@ -55,7 +55,7 @@ from ._lm import (
 from ._persist import PersistentJit
 from ._pose import Pose
 from ._problem import Layout, Packed, pack, stack_poses, unstack_poses
-from ._rig import Rig, laser_columns, project_board_points, project_rim, project_spots
+from ._rig import SHAPE_COLUMN, Rig, laser_columns, project_board_points, project_rim, project_spots
 from ._rigid import (
     MISFIT_MIN_PX,
     MISFIT_ROUNDS,
@@ -269,8 +269,37 @@ def calibrate(
             reported.
     """
     group = rigid_group(obs, rigid)
-    res = _calibrate_lockstep([obs], camera, freeze, loss, loss_scale, max_steps, _solve_loop, mirror=mirror)[0]
+    if camera is None and mirror is None and not obs.calibration_views and obs.mirror_shape is not None:
+        res = _through_the_mirror(obs, freeze, loss, loss_scale, max_steps)
+    else:
+        res = _calibrate_lockstep([obs], camera, freeze, loss, loss_scale, max_steps, _solve_loop, mirror=mirror)[0]
     return _rigid_refine(res, obs, group, max_steps) if group else res
+
+
+def _through_the_mirror(obs: Observations, freeze, loss, loss_scale, max_steps) -> "CalibrationResult":
+    """A rig seen only through its mirror (no direct views): the joint passes from each central
+    start (:func:`._central.central_start`), the lowest final cost kept.  Where the shape leaves
+    out the conic constant, the start searches it and the joint passes estimate it (the vertex
+    radius held: the scale's gauge)."""
+    shape = obs.mirror_shape
+    estimate = {"shape"} if shape.get("conic_constant") is None else set()
+    starts = central_start(
+        pack(obs),
+        obs.image_size,
+        shape["kind"],
+        shape.get("vertex_radius"),
+        shape.get("conic_constant"),
+        shape.get("radius"),
+    )
+    best = None
+    for cam, mir, rep in starts:
+        res = _calibrate_lockstep(
+            [obs], cam, freeze, loss, loss_scale, max_steps, _solve_loop, mirror=mir, estimate=estimate
+        )[0]
+        res.staged.reports.insert(0, rep)
+        if best is None or res.passes[-1].cost < best.passes[-1].cost:
+            best = res
+    return best
 
 
 def rigid_group(obs: Observations, rigid: "bool | list[str]") -> list[str]:
@@ -440,19 +469,9 @@ def _solve_vmap(jobs: list[tuple], loss: str, max_steps: int, size: int | None =
 class _Trial:
     """One calibration's state between the passes of :func:`_calibrate_lockstep`."""
 
-    def __init__(self, obs, camera, freeze, t0, fine: bool = False, mirror=None):
+    def __init__(self, obs, camera, freeze, t0, fine: bool = False, mirror=None, estimate=()):
         self.obs, self.t0 = obs, t0
-        pk = pack(obs)
-        start = None
-        if camera is None and mirror is None and not obs.calibration_views and obs.mirror_shape is not None:
-            # seen through the mirror only: a central rig first (._central)
-            shape = obs.mirror_shape
-            camera, mirror, start = central_start(
-                pk, obs.image_size, shape["kind"], shape["vertex_radius"], shape.get("conic_constant"), shape["radius"]
-            )
-        st = staged(obs, camera=camera, pk=pk, mirror=mirror)
-        if start is not None:
-            st.reports.insert(0, start)
+        st = staged(obs, camera=camera, pk=pack(obs), mirror=mirror)
         self.st, self.pk = st, st.packed  # spots without a board have one now
         self.t_staged = time.perf_counter() - t0
         if camera is not None and not st.chess_poses:
@@ -465,8 +484,8 @@ class _Trial:
         else:
             chess_stack = stack_poses(chess)
         self.params = Params(Rig(st.camera, st.mirror, st.lasers), stack_poses(st.poses), chess_stack)
-        self.masks = make_masks(self.params, set(freeze))
-        self.mask_a = make_masks(self.params, set(freeze) | {"lasers"})
+        self.masks = make_masks(self.params, set(freeze), estimate)
+        self.mask_a = make_masks(self.params, set(freeze) | {"lasers"}, estimate)
         self.fine = fine
         self.use(self.pk)
         self.passes: list[JointPass] = []
@@ -483,11 +502,14 @@ class _Trial:
         self.arr = self.layout.pad_packed(pk)
 
 
-def _calibrate_lockstep(obs_list, camera, freeze, loss, loss_scale, max_steps, solver, bar=None, mirror=None):
+def _calibrate_lockstep(
+    obs_list, camera, freeze, loss, loss_scale, max_steps, solver, bar=None, mirror=None, estimate=()
+):
     """:func:`calibrate`'s passes for every observation set in step; ``solver`` runs a pass's solves."""
     freeze = set(freeze)
     trials = [
-        _Trial(o, camera, freeze, time.perf_counter(), fine=solver is _solve_vmap, mirror=mirror) for o in obs_list
+        _Trial(o, camera, freeze, time.perf_counter(), fine=solver is _solve_vmap, mirror=mirror, estimate=estimate)
+        for o in obs_list
     ]
     size = len(trials)
 
@@ -1382,7 +1404,8 @@ def report(result: CalibrationResult, obs: Observations) -> dict:
         "camera_std": dict(
             zip(["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"], _finite_or_none(sd[:9]), strict=True)
         ),
-        "mirror_std": {"apex_mm": _finite_or_none(sd[9:12]), "axis_tilt_deg": _finite_or_none(np.degrees(sd[12:14]))},
+        "mirror_std": {"apex_mm": _finite_or_none(sd[9:12]), "axis_tilt_deg": _finite_or_none(np.degrees(sd[12:14]))}
+        | ({"conic_constant": _finite_or_none(sd[SHAPE_COLUMN])} if float(result.masks.glob[SHAPE_COLUMN]) else {}),
         "lasers": [
             {
                 "working_point": x_ref[i].tolist(),
@@ -1399,8 +1422,9 @@ def report(result: CalibrationResult, obs: Observations) -> dict:
         ],
         "covariance": {
             "parameters": "camera (fx, fy, cx, cy, k1, k2, p1, p2, k3), mirror (apex dx, dy, dz mm; axis tilt "
-            "e1, e2 rad), then per laser (point offset e1, e2 mm; direction tilt e1, e2 rad) with (e1, e2) "
-            "the orthonormal basis of slcvjax._safe.orthonormal_basis about the axis / laser direction",
+            "e1, e2 rad; conic constant, 0 where the shape is given), then per laser (point offset e1, e2 mm; "
+            "direction tilt e1, e2 rad) with (e1, e2) the orthonormal basis of slcvjax._safe.orthonormal_basis "
+            "about the axis / laser direction",
             "matrix": cov.tolist(),
         },
     }

@@ -28,10 +28,11 @@ from ._problem import Packed
 from ._staged import CalibrationError, StageReport, board_poses
 
 GAUGE_VERTEX_RADIUS = 20.0  # mm: the scale where the shape's vertex radius is not given
-ECCENTRICITIES = (1.003, 1.01, 1.03, 1.07, 1.15, 1.3, 1.5, 1.8, 2.3, 3.0)
+ECCENTRICITIES = (1.005, 1.02, 1.06, 1.15, 1.3, 1.55, 2.0, 3.0)
 DISTANCES = (1.5, 2.5, 4.0, 7.0, 12.0, 20.0, 35.0)  # in vertex radii, mirrors without a far focus
-SCALES = tuple(np.geomspace(1.0, 200.0, 16))  # px per mm of mirror
-MAX_EVALUATIONS = 120  # of the simplex search
+SCALES = tuple(np.geomspace(1.0, 200.0, 12))  # px per mm of mirror
+MAX_EVALUATIONS = 60  # of each simplex search
+N_STARTS = 3
 
 
 def _rig(conic: float, d: float, g: float, R: float, size: tuple[int, int], radius: float | None):
@@ -51,8 +52,11 @@ def central_start(
     vertex_radius: float | None = None,
     conic: float | None = None,
     radius: float | None = None,
-) -> tuple[Camera, ConicMirror, StageReport]:
-    """The best central (or, without a far focus, on-axis) rig for the boards of ``pk``.
+    n_starts: int = N_STARTS,
+) -> list[tuple[Camera, ConicMirror, StageReport]]:
+    """The best central (or, without a far focus, on-axis) rigs for the boards of ``pk``: one
+    per valley of the fit, at most ``n_starts``, best first (the joint fit from each may end in
+    a different minimum: the fits' errors are not those of the starts).
 
     Args:
         pk: the packed observations (the dots of every view's boards are used).
@@ -66,8 +70,8 @@ def central_start(
         radius: the rim's radius (mm) where known; else the rim is put where it bounds nothing
             (ten vertex radii, or inside a closed conic's widest circle).
 
-    Returns the camera, the mirror and the stage's report (the first-order RMS of the boards'
-    fit).  Raises :class:`._staged.CalibrationError` where no candidate poses every board.
+    Returns per start the camera, the mirror and the stage's report (the first-order RMS of the
+    boards' fit).  Raises :class:`._staged.CalibrationError` where no candidate poses every board.
     """
     if kind not in ("hyperboloid", "paraboloid", "sphere", "ellipsoid"):
         raise ValueError(f"central_start: no start for a {kind} mirror")
@@ -86,7 +90,7 @@ def central_start(
         """``a``: the eccentricity of a hyperboloid (its far focus at the camera), else the
         vertex's distance in vertex radii."""
         if kind == "hyperboloid":
-            return _rig(-a * a, R / (a - 1.0), g, R, image_size, radius)
+            return _rig(-a * a if conic is None else conic, R / (a - 1.0), g, R, image_size, radius)
         return _rig(fixed_conic, a * R, g, R, image_size, radius)
 
     tried: dict[tuple[float, float], float] = {}
@@ -95,34 +99,56 @@ def central_start(
         key = (round(a, 12), round(g, 12))
         if key not in tried:
             try:
-                err = board_poses(*candidate(a, g), pk)[1].rms
+                err = board_poses(*candidate(a, g), pk, flips=False)[1].rms
             except CalibrationError:  # some board's dots miss this mirror
                 err = np.inf
             tried[key] = err if np.isfinite(err) else np.inf
         return tried[key]
 
-    best = min(itertools.product(first, SCALES), key=lambda ag: rms(*ag))
-    if not np.isfinite(rms(*best)):
+    grid = {ag: rms(*ag) for ag in itertools.product(first, SCALES)}
+    # per value of the first unknown its best scale; the starts are the best of those, no two
+    # neighbours on the grid (a valley of the fit is one start)
+    profile = {a: min(SCALES, key=lambda g, a=a: grid[(a, g)]) for a in first}
+    order = sorted(first, key=lambda a: grid[(a, profile[a])])
+    seeds: list[float] = []
+    for a in order:
+        if np.isfinite(grid[(a, profile[a])]) and all(abs(first.index(a) - first.index(b)) > 1 for b in seeds):
+            seeds.append(a)
+    if not seeds:
         raise CalibrationError(f"views: no central {kind} rig poses every board (tried {len(tried)} candidates)")
 
-    # Nelder-Mead in (log(e - 1) or log of the distance, log g) from the grid's best (only log g
-    # where the first is given): the two trade off along a narrow curved valley, which a simplex
+    # Nelder-Mead in (log(e - 1) or log of the distance, log g) from each seed (only log g where
+    # the first is given): the two trade off along a narrow curved valley, which a simplex
     # follows where steps along the axes stall
-    def of_x(x: np.ndarray) -> tuple[float, float]:
-        if not free_first:
-            return best[0], float(np.exp(x[0]))
-        return (1.0 + np.exp(x[0]) if kind == "hyperboloid" else np.exp(x[0])), float(np.exp(x[1]))
+    def log_a(a: float) -> float:
+        return float(np.log(a - 1.0) if kind == "hyperboloid" else np.log(a))
 
-    a0, g0 = best
-    x0 = np.array(([np.log(a0 - 1.0) if kind == "hyperboloid" else np.log(a0)] if free_first else []) + [np.log(g0)])
-    simplex = np.vstack([x0, x0 + 0.3 * np.eye(len(x0))])
-    opts = {"initial_simplex": simplex, "xatol": 1e-4, "fatol": 1e-6, "maxfev": MAX_EVALUATIONS}
-    fit = minimize(lambda x: rms(*of_x(x)), x0, method="Nelder-Mead", options=opts)
-    a, g = of_x(fit.x) if rms(*of_x(fit.x)) < rms(a0, g0) else (a0, g0)
-    cam, mir = candidate(a, g)
-    what = f"eccentricity {a:.4g}" if kind == "hyperboloid" else f"vertex at {a * R:.4g} mm"
-    notes = [
-        f"central start: {kind}, vertex radius {R:g} mm (the gauge), {what}, focal length {float(cam.fx):.5g} px",
-        f"{len(tried)} rigs tried",
-    ]
-    return cam, mir, StageReport("central_start", rms(a, g), "px (first order)", notes)
+    def of_x(x: np.ndarray, a0: float) -> tuple[float, float]:
+        if not free_first:
+            return a0, float(np.exp(x[0]))
+        # each start stays between its seed's neighbours on the grid: the starts stay apart
+        k = first.index(a0)
+        lo, hi = log_a(first[max(k - 1, 0)]), log_a(first[min(k + 1, len(first) - 1)])
+        y = float(np.exp(np.clip(x[0], lo, hi)))
+        return (1.0 + y if kind == "hyperboloid" else y), float(np.exp(x[1]))
+
+    out = []
+    for a0 in seeds[:n_starts]:
+        g0 = profile[a0]
+        x0 = np.array(
+            ([np.log(a0 - 1.0) if kind == "hyperboloid" else np.log(a0)] if free_first else []) + [np.log(g0)]
+        )
+        simplex = np.vstack([x0, x0 + 0.3 * np.eye(len(x0))])
+        opts = {"initial_simplex": simplex, "xatol": 1e-4, "fatol": 1e-6, "maxfev": MAX_EVALUATIONS}
+        fit = minimize(lambda x, a0=a0: rms(*of_x(x, a0)), x0, method="Nelder-Mead", options=opts)
+        a, g = of_x(fit.x, a0) if rms(*of_x(fit.x, a0)) < rms(a0, g0) else (a0, g0)
+        cam, mir = candidate(a, g)
+        what = f"eccentricity {a:.4g}" if kind == "hyperboloid" else f"vertex at {a * R:.4g} mm"
+        notes = [
+            f"central start: {kind}, vertex radius {R:g} mm (the gauge), {what}, focal length {float(cam.fx):.5g} px"
+        ]
+        out.append((cam, mir, StageReport("central_start", rms(a, g), "px (first order)", notes)))
+    out.sort(key=lambda c: c[2].rms)
+    for k, (_, _, rep) in enumerate(out):
+        rep.notes.append(f"start {k + 1} of {len(out)}; {len(tried)} rigs tried")
+    return out

@@ -43,7 +43,8 @@ class ConicMirror(eqx.Module):
         conic: the conic constant ``kappa``.
         radius: the rim's radius ``r`` (mm).
 
-    Like the cone, its pose has 5 degrees of freedom (:meth:`retract`); the shape is given.
+    Like the cone, its pose has 5 degrees of freedom (:meth:`retract`); the conic constant is a
+    sixth, estimated only where asked (``estimate={"shape"}`` of :func:`._lm.make_masks`).
     """
 
     apex: Float[Array, "3"]
@@ -112,10 +113,13 @@ class ConicMirror(eqx.Module):
         """The rim's sag ``h = s(r^2)`` (mm): the rim circle's distance from the vertex along the axis."""
         return self.sag(self.radius**2)
 
-    def retract(self, delta: Float[Array, "5"]) -> "ConicMirror":
-        """``apex += delta[:3]``; the axis tilts by ``delta[3:]`` (radians) in its tangent plane."""
-        apex, axis = retract_pose(self.apex, self.axis, delta)
-        return ConicMirror(apex, axis, self.curvature, self.conic, self.radius)
+    def retract(self, delta: Float[Array, " 5"]) -> "ConicMirror":
+        """``apex += delta[:3]``; the axis tilts by ``delta[3:5]`` (radians) in its tangent plane;
+        a sixth component adds to the conic constant (the vertex radius stays: it is the scale's
+        gauge where the shape is estimated)."""
+        apex, axis = retract_pose(self.apex, self.axis, delta[:5])
+        conic = self.conic + delta[5] if delta.shape[0] > 5 else self.conic
+        return ConicMirror(apex, axis, self.curvature, conic, self.radius)
 
     def rim_points(self, angles: Float[Array, " n"]) -> Float[Array, "n 3"]:
         """Points of the rim circle at the given azimuths, camera frame."""

@@ -10,7 +10,7 @@ solution satisfies ``grad_delta F = 0``, so a change ``dy`` of the data moves it
 
 without differentiating through the iterations.  ``H`` is the full Hessian (the
 Gauss-Newton part ``J^T W J`` plus the residuals' curvature, which matters at a noisy
-solution), built observation by observation: each touches at most 24 local parameters,
+solution), built observation by observation: each touches at most ``N_L`` (25) local parameters,
 so its Hessian and its mixed derivative in its own data are small dense blocks,
 scattered into the same Schur form as the normal equations and solved by eliminating
 the pose blocks.  The reflection point's Newton solve gives exact second derivatives
@@ -60,10 +60,10 @@ def _rho(r, k, robust: bool, loss: str, c):
 class _Blocks(NamedTuple):
     """Per observation: its cost's local gradient, Hessian and mixed data derivative, with indices."""
 
-    g: Float[Array, "n 24"]  # d F_i / d local, local = [global 18 | pose 6]
-    h: Float[Array, "n 24 24"]  # d2 F_i / d local^2
-    m: Float[Array, "n 24 5"]  # d2 F_i / d local d y_i, y_i = [pixel 2 | board point 3]
-    gidx: Array  # (n, 18) global column of each global local parameter (G = none)
+    g: Float[Array, "n L"]  # d F_i / d local, local = [global N_G (19) | pose 6]
+    h: Float[Array, "n L L"]  # d2 F_i / d local^2
+    m: Float[Array, "n L 5"]  # d2 F_i / d local d y_i, y_i = [pixel 2 | board point 3]
+    gidx: Array  # (n, N_G) global column of each global local parameter (G = none)
     pidx: Array  # (n,) pose block (NB = none)
 
 
@@ -71,7 +71,7 @@ N_L = N_G + 6  # an observation's local parameters
 
 
 def _second_order(grad_fn):
-    """``v -> (d grad / dv, grad)`` for a local-gradient function of ``v = [local 24 | data 5]``."""
+    """``v -> (d grad / dv, grad)`` for a local-gradient function of ``v = [local N_L | data 5]``."""
 
     def blocks(y, *args):
         v = jnp.concatenate([jnp.zeros(N_L), y])
@@ -160,7 +160,7 @@ class _Hessian(NamedTuple):
 
 def _assemble(bl: _Blocks, g: int, nb: int, masks: Masks) -> _Hessian:
     """The Schur-form Hessian over the estimated parameters (frozen ones get a unit diagonal)."""
-    gm = jnp.concatenate([masks.glob, jnp.zeros(1)])[bl.gidx]  # (n, 18)
+    gm = jnp.concatenate([masks.glob, jnp.zeros(1)])[bl.gidx]  # (n, N_G)
     pm = jnp.concatenate([masks.blocks, jnp.zeros(1)])[bl.pidx]  # (n,)
     h = bl.h * jnp.concatenate([gm, jnp.broadcast_to(pm[:, None], (pm.shape[0], 6))], axis=1)[:, :, None]
     h = h * jnp.concatenate([gm, jnp.broadcast_to(pm[:, None], (pm.shape[0], 6))], axis=1)[:, None, :]
@@ -204,7 +204,7 @@ def _data_tangent(pk: Packed, dpk) -> Float[Array, "n 5"]:
 
 
 def _scatter(bl: _Blocks, v, g: int, nb: int, masks: Masks):
-    """Per-observation local vectors ``v`` (n, 24, ...) summed into the global and pose parts."""
+    """Per-observation local vectors ``v`` (n, N_L, ...) summed into the global and pose parts."""
     extra = v.shape[2:]
     rg = jnp.zeros((g + 1,) + extra).at[bl.gidx].add(v[:, :N_G])[:g]
     rp = jnp.zeros((nb + 1, 6) + extra).at[bl.pidx].add(v[:, N_G:])[:nb]
@@ -322,7 +322,7 @@ def _pixel_columns(lin: _Linearised, masks: Masks):
     n = bl.m.shape[0]
     # one column per observed pixel coordinate (2 i + a for axis a of observation i), each
     # touching only its own observation's local parameters
-    v = -bl.m[:, :, :2]  # (n, 24, 2)
+    v = -bl.m[:, :, :2]  # (n, N_L, 2)
     col = 2 * jnp.arange(n)[:, None] + jnp.arange(2)[None, :]  # (n, 2)
     rg = jnp.zeros((g + 1, 2 * n)).at[bl.gidx[:, :, None], col[:, None, :]].add(v[:, :N_G])[:g]
     rp = jnp.zeros((nb + 1, 6, 2 * n)).at[bl.pidx[:, None, None], jnp.arange(6)[None, :, None], col[:, None, :]]
@@ -334,7 +334,7 @@ def _pixel_columns(lin: _Linearised, masks: Masks):
 class Sensitivity(NamedTuple):
     """Derivatives of a calibration's global parameters with respect to its observed pixels.
 
-    ``glob[:, j]`` is the derivative of the rig's local coordinates (camera 9, mirror 5,
+    ``glob[:, j]`` is the derivative of the rig's local coordinates (camera 9, mirror 6,
     lasers 4 each, as in :meth:`Rig.retract`) with respect to pixel coordinate ``j``;
     columns are ordered by observation (dots, spots, rim pixels, chessboard corners, as in
     :class:`Packed`), two per observation (u, v), ``kind`` and ``index`` naming each

@@ -1,15 +1,15 @@
 """Joint Levenberg-Marquardt over the whole rig with a Schur complement over the poses.
 
-Unknowns: the *global* block (camera 9, mirror 5, lasers 4 each) and one 6-DOF *pose
+Unknowns: the *global* block (camera 9, mirror 6, lasers 4 each) and one 6-DOF *pose
 block* per board pose of a catadioptric view and per direct chessboard view.  Every
 observation touches the global block and at most one pose block:
 
 =========== ===== ============================================== ==========
 observation rows  local parameters                                pose block
 =========== ===== ============================================== ==========
-dot         2     camera, mirror, board pose (20)                board pose
-spot        2     camera, mirror, its laser, board pose (24)     board pose
-rim pixel   1     camera, mirror (14)                             none
+dot         2     camera, mirror, board pose (21)                board pose
+spot        2     camera, mirror, its laser, board pose (25)     board pose
+rim pixel   1     camera, mirror (15)                             none
 chess corner 2    camera, direct-view pose (15)                  direct view
 =========== ===== ============================================== ==========
 
@@ -42,6 +42,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ._camera import Camera, in_image, pixel_to_ray, project
+from ._conic import ConicMirror
 from ._lasers import Lasers, line_plane_intersection
 from ._mirror import ConeMirror, project_through_mirror
 from ._pose import Pose
@@ -121,13 +122,13 @@ def _spot_point(d_laser, lp, ld, pose: Pose):
 
 
 def _dot(d, cam, mir, R, t, xb, px):
-    """A dot's residual over its local parameters ``d`` (camera, mirror, board pose: 20)."""
+    """A dot's residual over its local parameters ``d`` (camera, mirror, board pose: 21)."""
     c, m = _cm(cam, mir, d)
     return _mirror_pixel(c, m, Pose(R, t).retract(d[N_CM:]).apply(xb), px)
 
 
 def _spot(d, cam, mir, lp, ld, R, t, px):
-    """A spot's residual over its local parameters ``d`` (camera, mirror, laser, board pose: 24)."""
+    """A spot's residual over its local parameters ``d`` (camera, mirror, laser, board pose: 25)."""
     c, m = _cm(cam, mir, d)
     x, ok = _spot_point(d[N_CM : N_CM + N_LAS], lp, ld, Pose(R, t).retract(d[N_CM + N_LAS :]))
     r, valid = _mirror_pixel(c, m, x, px)
@@ -161,7 +162,7 @@ def _spot_point_box(d, lp, ld, Rv, tv, Rb, tb):
 
 
 def _project_local(d, cam, mir, x, px):
-    """The residual of a point ``x`` seen through the mirror over ``d``: camera, mirror (14), the point (3)."""
+    """The residual of a point ``x`` seen through the mirror over ``d``: camera, mirror (15), the point (3)."""
     c, m = _cm(cam, mir, d)
     return _mirror_pixel(c, m, x + d[N_CM:], px)
 
@@ -725,19 +726,26 @@ class Masks(eqx.Module):
     blocks: Float[Array, " NB"]
 
 
-def make_masks(params: Params, freeze: frozenset | set | tuple = ()) -> Masks:
-    """Freeze masks from block names: camera, mirror, lasers, poses, chess_poses."""
+def make_masks(params: Params, freeze: frozenset | set | tuple = (), estimate: frozenset | set | tuple = ()) -> Masks:
+    """Freeze masks from block names: camera, mirror, lasers, poses, chess_poses.  The mirror's
+    shape column (its conic constant) is estimated only where ``estimate`` names ``shape``, the
+    mirror is not frozen and is a conic one."""
     known = {"camera", "mirror", "lasers", "poses", "chess_poses"}
     bad = set(freeze) - known
     if bad:
         raise ValueError(
             f"unknown parameter block(s) to freeze: {', '.join(sorted(bad))} (known: {', '.join(sorted(known))})"
         )
+    bad = set(estimate) - {"shape"}
+    if bad:
+        raise ValueError(f"unknown parameter block(s) to estimate: {', '.join(sorted(bad))} (known: shape)")
+    shape_free = "shape" in estimate and "mirror" not in freeze and isinstance(params.rig.mirror, ConicMirror)
     n_l = params.rig.lasers.n
     glob = np.concatenate(
         [
             np.full(N_CAM, 0.0 if "camera" in freeze else 1.0),
-            np.full(N_MIR, 0.0 if "mirror" in freeze else 1.0),
+            np.full(N_MIR - 1, 0.0 if "mirror" in freeze else 1.0),
+            [1.0 if shape_free else 0.0],
             np.full(N_LAS * n_l, 0.0 if "lasers" in freeze else 1.0),
         ]
     )

@@ -19,7 +19,7 @@ over the unflagged points, and 0.004 over all points, where a few near-parallel
 points predict metres).
 
 Uncertainty is first-order: the Jacobians of the point with respect to the pixel
-and to the rig's tangent parameters (camera 9, mirror 5, lasers 4 N, the order
+and to the rig's tangent parameters (camera 9, mirror 6, lasers 4 N, the order
 of the calibration's covariance) propagate the pixel noise and, when given, the
 calibration's covariance.  Points of one view share the calibration, so their
 joint covariance is kept for the circle fit.
@@ -337,7 +337,7 @@ def measure_spots(
         n_views: number of views.
         pixel_sigma: per-coordinate pixel noise (px) of a spot.
         rig_cov: optional (G, G) covariance of the rig's tangent parameters (camera 9,
-            mirror 5, lasers 4 N), as written by the calibration.
+            mirror 6, lasers 4 N), as written by the calibration.
 
     Returns one :class:`ViewPoints` per view.
     """

@@ -65,9 +65,11 @@ class ConeMirror(eqx.Module):
         """The slope ``r / h`` (tangent of the half-angle)."""
         return self.radius / self.height
 
-    def retract(self, delta: Float[Array, "5"]) -> "ConeMirror":
-        """``apex += delta[:3]``; the axis tilts by ``delta[3:]`` (radians) in its tangent plane."""
-        apex, axis = retract_pose(self.apex, self.axis, delta)
+    def retract(self, delta: Float[Array, " 5"]) -> "ConeMirror":
+        """``apex += delta[:3]``; the axis tilts by ``delta[3:5]`` (radians) in its tangent plane.
+        The cone's shape is given: a sixth component (the rig's shape column) is not used, and
+        :func:`._lm.make_masks` never frees it for a cone."""
+        apex, axis = retract_pose(self.apex, self.axis, delta[:5])
         return ConeMirror(apex, axis, self.radius, self.height)
 
     def rim_points(self, angles: Float[Array, " n"]) -> Float[Array, "n 3"]:

@@ -19,7 +19,7 @@ import numpy as np
 from ._io import Observations, SpotObs, ViewObs
 from ._measure import Circle, ViewPoints, fit_circle_3d, measure_spots
 from ._mirror import ConeMirror, project_through_mirror, shape_json
-from ._rig import Rig
+from ._rig import SHAPE_COLUMN, Rig
 
 
 @dataclass
@@ -357,10 +357,12 @@ def measurement_inputs(path, cal) -> tuple[float | None, np.ndarray | None]:
             cov = np.asarray(mat, dtype=float)
         except (TypeError, ValueError):
             raise FormatError(f"{path}: uncertainty.covariance.matrix: not a numeric matrix") from None
+        if cov.shape == (g - 1, g - 1):  # without the mirror's shape column: the shape given
+            cov = np.insert(np.insert(cov, SHAPE_COLUMN, 0.0, axis=0), SHAPE_COLUMN, 0.0, axis=1)
         if cov.shape != (g, g):
             raise FormatError(
                 f"{path}: uncertainty.covariance.matrix: shape {cov.shape}, expected {(g, g)} "
-                f"(camera 9 + mirror 5 + 4 per laser)"
+                f"(camera 9 + mirror 6 + 4 per laser, or without the mirror's shape column)"
             )
         if not np.all(np.isfinite(cov)):
             i, j = np.argwhere(~np.isfinite(cov))[0]

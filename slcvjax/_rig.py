@@ -10,8 +10,9 @@ from ._mirror import ConeMirror, project_through_mirror
 from ._pose import Pose
 
 CAMERA_DOF = 9
-MIRROR_DOF = 5
+MIRROR_DOF = 6  # the pose (vertex 3, axis tilt 2) and one of the shape (see the mirrors' retract)
 LASER_DOF = 4
+SHAPE_COLUMN = CAMERA_DOF + MIRROR_DOF - 1  # the mirror's shape (a conic's constant) in the rig's tangent
 POSE_DOF = 6
 
 
@@ -26,8 +27,8 @@ def laser_columns(i: int) -> slice:
 class Rig(eqx.Module):
     """Everything calibrated about the sensor: camera, mirror and lasers.
 
-    ``tangent_dim`` is ``9 + 5 + 4 N``; :meth:`retract` takes a flat increment
-    in the order camera (9), mirror (5), lasers (N x 4, row-major).
+    ``tangent_dim`` is ``9 + 6 + 4 N``; :meth:`retract` takes a flat increment
+    in the order camera (9), mirror (6: vertex, axis tilt, shape), lasers (N x 4, row-major).
     """
 
     camera: Camera

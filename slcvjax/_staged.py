@@ -323,12 +323,13 @@ _refine_poses = PersistentJit(_refine_poses, "refine_poses")
 
 
 def board_poses(
-    camera: Camera, mirror: ConeMirror, pk: Packed, start: Pose | None = None
+    camera: Camera, mirror: ConeMirror, pk: Packed, start: Pose | None = None, flips: bool = True
 ) -> tuple[list[Pose], StageReport]:
     """The pose of every (view, board) of ``pk`` from its dots, by generalized planar PnP.
 
     ``start`` (stacked poses): refine from these instead of the DLT (both the start and
-    its flipped twin are tried).
+    its flipped twin are tried).  ``flips=False``: the flipped twins are not tried (half the
+    work, for a search that scores many rigs).
     """
     rays, metric = map_padded(_rays_with_pixel_metric, camera, mirror, rows=pk.dot_pixels)
     org, dirs, ok = np.asarray(rays.point), np.asarray(rays.direction), np.asarray(rays.valid)
@@ -365,9 +366,11 @@ def board_poses(
         R1, t1, e1 = _refine_poses(jnp.asarray(R0), jnp.asarray(t0), *data)
         # a small planar target has a second, flipped pose (its normal mirrored about the
         # line of sight); refine that one too and keep the best fit of all candidates
-        R2, t2 = _flipped(np.asarray(R1), np.asarray(t1), xb, mask)
-        R2, t2, e2 = _refine_poses(jnp.asarray(R2), jnp.asarray(t2), *data)
-        for Rc, tc, ec in ((R1, t1, e1), (R2, t2, e2)):
+        found = [(R1, t1, e1)]
+        if flips:
+            R2, t2 = _flipped(np.asarray(R1), np.asarray(t1), xb, mask)
+            found.append(_refine_poses(jnp.asarray(R2), jnp.asarray(t2), *data))
+        for Rc, tc, ec in found:
             ec = jnp.where(jnp.isfinite(ec), ec, jnp.inf)
             if R is None:
                 R, t, errs = Rc, tc, ec

@@ -10,7 +10,7 @@ PACKAGE = Path(__file__).parent.parent / "slcvjax"
 LAYERS = [
     ("support", {"_safe", "_cache", "_persist"}),
     ("geometry", {"_pose", "_newton", "_camera", "_lasers", "_revolution", "_conic", "_mirror", "_rig"}),
-    ("observations", {"_io", "_problem", "_simulate"}),
+    ("observations", {"_io", "_problem", "_simulate", "_published"}),
     ("calibration", {"_lm", "_staged", "_central", "_rigid", "_calibrate", "_implicit", "_chessboard"}),
     ("measurement", {"_measure"}),
     ("images", {"_detect", "_pipe", "_render", "_centroids"}),
