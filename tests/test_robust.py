@@ -8,6 +8,7 @@ import pytest
 
 from slcvjax._calibrate import calibrate, cramer_rao, laser_errors, laser_std, report
 from slcvjax._problem import pack
+from slcvjax._rig import laser_columns
 from slcvjax._safe import std_of_variance
 from slcvjax._simulate import make_scene, simulate
 from slcvjax._staged import CalibrationError, fit_lasers
@@ -153,7 +154,7 @@ def test_negative_variances_are_undetermined_not_zero(clean_result, noisy):
     assert np.isnan(std_of_variance([4.0, -0.5])[1])
     res = copy.copy(clean_result)
     cov = np.array(res.cov.glob)
-    sl = slice(14 + 4, 18 + 4)  # laser 1's block
+    sl = laser_columns(1)
     cov[sl, sl] = -np.abs(cov[sl, sl])
     res.cov = res.cov._replace(glob=cov)
     pos, ang = laser_std(res.rig, cov, np.zeros((res.rig.lasers.n, 3)))
