@@ -42,8 +42,9 @@ def test_predicted_diameter_std_matches_monte_carlo_pixel_noise_and_calibration_
     d, sigma = 170.0, 0.6
     g = rig.tangent_dim
     rng = np.random.default_rng(3)
-    # a calibration covariance of plausible size: lasers 0.3 mm / 0.3 deg, mirror 0.02 mm, camera small
-    scale = np.concatenate([[0.2, 0.2, 0.2, 0.2, 1e-4, 1e-4, 1e-5, 1e-5, 1e-4], [0.02] * 3, [2e-4] * 2,
+    # a calibration covariance of plausible size: lasers 0.3 mm / 0.3 deg, mirror 0.02 mm, camera
+    # small, the cone's shape given
+    scale = np.concatenate([[0.2, 0.2, 0.2, 0.2, 1e-4, 1e-4, 1e-5, 1e-5, 1e-4], [0.02] * 3, [2e-4] * 2, [0.0],
                             np.tile([0.3, 0.3, 0.005, 0.005], rig.lasers.n)])  # fmt: skip
     a = rng.normal(size=(g, g)) / np.sqrt(g)
     cov = (scale[:, None] * (a @ a.T + 0.5 * np.eye(g))) * scale[None, :]
