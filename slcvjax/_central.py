@@ -76,7 +76,9 @@ def central_start(
     if kind not in ("hyperboloid", "paraboloid", "sphere", "ellipsoid"):
         raise ValueError(f"central_start: no start for a {kind} mirror")
     if kind == "ellipsoid" and conic is None:
-        raise ValueError("central_start: an ellipsoid needs its conic constant")
+        raise CalibrationError(
+            "mirror_shape.conic_constant: an ellipsoid's is needed (the start searches a hyperboloid's)"
+        )
     R = float(vertex_radius or GAUGE_VERTEX_RADIUS)
     if kind == "hyperboloid":
         first = ECCENTRICITIES if conic is None else (float(np.sqrt(-conic)),)

@@ -198,28 +198,51 @@ def _pixels(ctx: _Ctx, val: Any, n: int, where: str) -> tuple[np.ndarray, np.nda
     return px, seen
 
 
-def read_shape(ctx: "_Ctx", shape: Any, where: str) -> tuple[float, float, dict | None]:
+# a conic mirror's dimensions an observation file may leave out: calibrated from views through
+# the mirror alone, the vertex radius is then the scale's gauge (``._central.GAUGE_VERTEX_RADIUS``),
+# the conic constant is estimated and the rim bounds nothing
+SHAPE_UNKNOWNS = ("vertex_radius", "radius", "conic_constant")
+
+
+def shape_keys(kind: str) -> list[str]:
+    """The dimensions a conic mirror of ``kind`` is given by (none for the cone's other form)."""
+    return ["vertex_radius", "radius"] + (["conic_constant"] if kind in ("hyperboloid", "ellipsoid") else [])
+
+
+def shape_missing(shape: dict | None) -> list[str]:
+    """The dimensions a (conic) ``mirror_shape`` leaves out; none for a cone (None)."""
+    return [] if shape is None else [k for k in shape_keys(shape["kind"]) if k not in shape]
+
+
+def read_shape(ctx: "_Ctx", shape: Any, where: str, partial: bool = False) -> tuple[float, float, dict | None]:
     """A mirror's shape (``mirror_shape``, or a calibration's ``mirror``): the rim's radius and
     sag, and the shape (None for a cone).  ``kind``: cone (``radius``, ``height``), sphere or
     paraboloid (``vertex_radius``, ``radius``), hyperboloid or ellipsoid (those and
-    ``conic_constant``)."""
+    ``conic_constant``).  ``partial`` (observations): a conic mirror's dimensions may be left
+    out (:data:`SHAPE_UNKNOWNS`: estimated by the calibration); the rim's radius and sag are then
+    0 where not known."""
     from ._mirror import MIRROR_KINDS, mirror_of_shape
 
     kind = ctx.get(shape, "kind", where, str)
     if kind not in MIRROR_KINDS:
         ctx.fail(f"{where}.kind", f"unknown mirror kind {kind!r} (known: {', '.join(MIRROR_KINDS)})")
-    radius = ctx.positive(ctx.get(shape, "radius", where), f"{where}.radius")
     if kind == "cone":
+        radius = ctx.positive(ctx.get(shape, "radius", where), f"{where}.radius")
         return radius, ctx.positive(ctx.get(shape, "height", where), f"{where}.height"), None
-    vertex_radius = ctx.positive(ctx.get(shape, "vertex_radius", where), f"{where}.vertex_radius")
-    out = {"kind": kind, "vertex_radius": vertex_radius, "radius": radius}
-    if kind in ("hyperboloid", "ellipsoid"):
-        out["conic_constant"] = ctx.number(ctx.get(shape, "conic_constant", where), f"{where}.conic_constant")
+    out: dict = {"kind": kind}
+    keys = shape_keys(kind)
+    for key in keys:
+        if partial and key in SHAPE_UNKNOWNS and (not isinstance(shape, dict) or key not in shape):
+            continue
+        val = ctx.get(shape, key, where)
+        out[key] = ctx.number(val, f"{where}.{key}") if key == "conic_constant" else ctx.positive(val, f"{where}.{key}")
+    if shape_missing(out):  # dimensions left out: checked where they are estimated
+        return out.get("radius", 0.0), 0.0, out
     try:
         mirror = mirror_of_shape(out, [0.0, 0.0, 1.0], [0.0, 0.0, 1.0])
     except ValueError as e:
         ctx.fail(where, str(e))
-    return radius, float(mirror.height), out
+    return out["radius"], float(mirror.height), out
 
 
 def read_sensor_fields(ctx: _Ctx, doc: Any) -> tuple[tuple[int, int], float, float, int, dict | None]:
@@ -230,7 +253,7 @@ def read_sensor_fields(ctx: _Ctx, doc: Any) -> tuple[tuple[int, int], float, flo
         ctx.fail("image_size", f"expected [width, height], got {len(size)} values")
     w = ctx.integer(size[0], "image_size[0]", lo=1)
     h = ctx.integer(size[1], "image_size[1]", lo=1)
-    radius, height, shape = read_shape(ctx, ctx.get(doc, "mirror_shape", "", dict), "mirror_shape")
+    radius, height, shape = read_shape(ctx, ctx.get(doc, "mirror_shape", "", dict), "mirror_shape", partial=True)
     n_lasers = ctx.integer(ctx.get(doc, "n_lasers", ""), "n_lasers", lo=0)
     return (w, h), radius, height, n_lasers, shape
 

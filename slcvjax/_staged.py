@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._camera import Camera, undistort
-from ._io import Observations, SpotObs, ViewObs
+from ._io import Observations, SpotObs, ViewObs, shape_missing
 from ._lasers import Lasers
 from ._mirror import ConeMirror, back_project, mirror_of_shape
 from ._persist import PersistentJit
@@ -564,6 +564,12 @@ def staged(obs: Observations, camera: Camera | None = None, pk: Packed | None = 
     if mirror is not None:
         mirrors, rep_m = [mirror], StageReport("mirror", float("nan"), "px", ["given (not estimated from the rim)"])
     else:
+        missing = shape_missing(obs.mirror_shape)
+        if missing:
+            raise CalibrationError(
+                f"mirror_shape: the rim stage needs the {obs.mirror_shape['kind']}'s {', '.join(missing)} (left out, "
+                "they are estimated only from views through the mirror alone: no calibration_views, no camera given)"
+            )
         rim = np.concatenate([v.rim for v in obs.views]) if obs.views else np.zeros((0, 2))
         mirrors, rep_m = mirror_from_rim(camera, rim, obs.mirror_radius, obs.mirror_height, obs.mirror_shape)
     best = None

@@ -13,10 +13,12 @@ from slcvjax._problem import pack
 from slcvjax._rig import Rig
 from slcvjax._simulate import box_scene, paper_camera, paper_views, simulate
 
+_NO_LASERS = Lasers.create(np.zeros((0, 3)), np.zeros((0, 3)))
+
 
 def _through_mirror_only(rig, n_views=8, noise=0.3, seed=4):
     """Observations of the box's walls through the mirror only: no direct views, no rim."""
-    rig = Rig(rig.camera, rig.mirror, Lasers.create(np.zeros((0, 3)), np.zeros((0, 3))))
+    rig = Rig(rig.camera, rig.mirror, _NO_LASERS)
     obs, truth = simulate(box_scene(rig, paper_views(n_views), n_chess_views=0), noise=noise, seed=seed)
     obs = dataclasses.replace(obs, views=[dataclasses.replace(v, rim=np.zeros((0, 2))) for v in obs.views])
     assert not obs.calibration_views
@@ -126,3 +128,33 @@ def test_a_covariance_without_the_shape_column_is_read(tmp_path):
     expected = full.copy()
     expected[SHAPE_COLUMN, SHAPE_COLUMN] = 0.0
     np.testing.assert_array_equal(cov, expected)
+
+
+def test_a_shape_without_dimensions_from_the_cli(tmp_path):
+    """``"mirror_shape": {"kind": "hyperboloid"}``: no dimensions given, views through the
+    mirror only.  The calibration writes a hyperboloid whose conic constant it estimated, with
+    the gauge's vertex radius; with direct views the rim stage says what it is missing."""
+    import json
+
+    from slcvjax import cli
+    from slcvjax._central import GAUGE_VERTEX_RADIUS
+    from slcvjax._io import read_observations, write_observations
+    from slcvjax._staged import CalibrationError
+
+    mirror = ConicMirror.of_kind("hyperboloid", [0.5, -0.3, 40.0], [0.015, -0.01, 1.0], 15.0, 20.0, -2.0)
+    obs, _ = _through_mirror_only(Rig(paper_camera(), mirror, None), n_views=6, seed=3)
+    write_observations(tmp_path / "obs.json", dataclasses.replace(obs, mirror_shape={"kind": "hyperboloid"}))
+    back = read_observations(tmp_path / "obs.json")
+    assert back.mirror_shape == {"kind": "hyperboloid"}
+    assert cli.main(["calibrate", str(tmp_path / "obs.json"), "--out", str(tmp_path / "cal.json")]) == 0
+    doc = json.loads((tmp_path / "cal.json").read_text())
+    assert doc["mirror"]["vertex_radius"] == GAUGE_VERTEX_RADIUS and doc["mirror"]["conic_constant"] != 0.0
+    assert doc["uncertainty"]["mirror_std"]["conic_constant"] > 0.0
+    assert doc["residuals"]["rms_px"] < 0.45
+
+    from slcvjax._calibrate import calibrate
+    from slcvjax._simulate import box_scene, simulate
+
+    direct, _ = simulate(box_scene(Rig(paper_camera(), mirror, _NO_LASERS), paper_views(3), n_chess_views=4))
+    with pytest.raises(CalibrationError, match="mirror_shape: the rim stage needs the hyperboloid's vertex_radius"):
+        calibrate(dataclasses.replace(direct, mirror_shape={"kind": "hyperboloid"}))
