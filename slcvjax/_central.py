@@ -14,7 +14,10 @@ distance ``D``); for a hyperboloid the far focus fixes ``D = R / (e - 1)``.  Mir
 such focus (sphere, paraboloid, ellipsoid) search the distance ``D`` instead.  The scale is
 the vertex radius ``R``: a central camera's images do not change when mirror and distance
 grow together, so ``R`` (the datasheet's, or :data:`GAUGE_VERTEX_RADIUS`) is held as the gauge
-and the calibration keeps it.  A coarse grid is refined by a shrinking pattern search.
+and the calibration keeps it.  A coarse grid over both gives the seeds (per value of the first
+its best scale, no two seeds neighbours on the grid: one per valley of the fit), and a
+Nelder-Mead simplex refines each within its seed's neighbours; the joint fit runs from each
+(:func:`._calibrate.calibrate`) and keeps the lowest cost.
 """
 
 import itertools
@@ -137,9 +140,7 @@ def central_start(
     out = []
     for a0 in seeds[:n_starts]:
         g0 = profile[a0]
-        x0 = np.array(
-            ([np.log(a0 - 1.0) if kind == "hyperboloid" else np.log(a0)] if free_first else []) + [np.log(g0)]
-        )
+        x0 = np.array(([log_a(a0)] if free_first else []) + [np.log(g0)])
         simplex = np.vstack([x0, x0 + 0.3 * np.eye(len(x0))])
         opts = {"initial_simplex": simplex, "xatol": 1e-4, "fatol": 1e-6, "maxfev": MAX_EVALUATIONS}
         fit = minimize(lambda x, a0=a0: rms(*of_x(x, a0)), x0, method="Nelder-Mead", options=opts)

@@ -113,7 +113,7 @@ class ConicMirror(eqx.Module):
         """The rim's sag ``h = s(r^2)`` (mm): the rim circle's distance from the vertex along the axis."""
         return self.sag(self.radius**2)
 
-    def retract(self, delta: Float[Array, " 5"]) -> "ConicMirror":
+    def retract(self, delta: Float[Array, " d"]) -> "ConicMirror":
         """``apex += delta[:3]``; the axis tilts by ``delta[3:5]`` (radians) in its tangent plane;
         a sixth component adds to the conic constant (the vertex radius stays: it is the scale's
         gauge where the shape is estimated)."""

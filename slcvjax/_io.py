@@ -198,14 +198,8 @@ def _pixels(ctx: _Ctx, val: Any, n: int, where: str) -> tuple[np.ndarray, np.nda
     return px, seen
 
 
-# a conic mirror's dimensions an observation file may leave out: calibrated from views through
-# the mirror alone, the vertex radius is then the scale's gauge (``._central.GAUGE_VERTEX_RADIUS``),
-# the conic constant is estimated and the rim bounds nothing
-SHAPE_UNKNOWNS = ("vertex_radius", "radius", "conic_constant")
-
-
 def shape_keys(kind: str) -> list[str]:
-    """The dimensions a conic mirror of ``kind`` is given by (none for the cone's other form)."""
+    """The dimensions a conic mirror of ``kind`` is given by."""
     return ["vertex_radius", "radius"] + (["conic_constant"] if kind in ("hyperboloid", "ellipsoid") else [])
 
 
@@ -219,8 +213,9 @@ def read_shape(ctx: "_Ctx", shape: Any, where: str, partial: bool = False) -> tu
     sag, and the shape (None for a cone).  ``kind``: cone (``radius``, ``height``), sphere or
     paraboloid (``vertex_radius``, ``radius``), hyperboloid or ellipsoid (those and
     ``conic_constant``).  ``partial`` (observations): a conic mirror's dimensions may be left
-    out (:data:`SHAPE_UNKNOWNS`: estimated by the calibration); the rim's radius and sag are then
-    0 where not known."""
+    out, for a calibration from views through the mirror alone (the vertex radius is then the
+    scale's gauge, ``._central.GAUGE_VERTEX_RADIUS``, the conic constant is estimated and the rim
+    bounds nothing); the rim's radius and sag are then 0 where not known."""
     from ._mirror import MIRROR_KINDS, mirror_of_shape
 
     kind = ctx.get(shape, "kind", where, str)
@@ -232,7 +227,7 @@ def read_shape(ctx: "_Ctx", shape: Any, where: str, partial: bool = False) -> tu
     out: dict = {"kind": kind}
     keys = shape_keys(kind)
     for key in keys:
-        if partial and key in SHAPE_UNKNOWNS and (not isinstance(shape, dict) or key not in shape):
+        if partial and key not in shape:
             continue
         val = ctx.get(shape, key, where)
         out[key] = ctx.number(val, f"{where}.{key}") if key == "conic_constant" else ctx.positive(val, f"{where}.{key}")

@@ -65,7 +65,7 @@ class ConeMirror(eqx.Module):
         """The slope ``r / h`` (tangent of the half-angle)."""
         return self.radius / self.height
 
-    def retract(self, delta: Float[Array, " 5"]) -> "ConeMirror":
+    def retract(self, delta: Float[Array, " d"]) -> "ConeMirror":
         """``apex += delta[:3]``; the axis tilts by ``delta[3:5]`` (radians) in its tangent plane.
         The cone's shape is given: a sixth component (the rig's shape column) is not used, and
         :func:`._lm.make_masks` never frees it for a cone."""
