@@ -267,7 +267,8 @@ def print_report(cal, name: str = "") -> None:
     print("per kind   " + "  ".join(f"{k} {_fmt(v)}" for k, v in res["by_kind_rms_px"].items()))
     print("per view   " + "  ".join(f"{k} {_fmt(v)}" for k, v in res["per_view_rms_px"].items()))
     print("per board  " + "  ".join(f"{k} {_fmt(v)}" for k, v in res["per_board_rms_px"].items()))
-    print("per laser  " + "  ".join(f"{k}: {_fmt(v)}" for k, v in res["per_laser_rms_px"].items()))
+    if res["per_laser_rms_px"]:
+        print("per laser  " + "  ".join(f"{k}: {_fmt(v)}" for k, v in res["per_laser_rms_px"].items()))
     out = res["outliers"]
 
     def _outlier(o):
@@ -298,6 +299,11 @@ def print_report(cal, name: str = "") -> None:
     ms = unc["mirror_std"]
     apex, tilt = (", ".join(_fmt(v, 4) for v in ms[k]) for k in ("apex_mm", "axis_tilt_deg"))
     print(f"mirror std apex [{apex}] mm  axis [{tilt}] deg")
+    if "conic_constant" in ms:  # the shape estimated
+        print(
+            f"mirror     {cal.rig.mirror.kind}, conic constant {float(cal.rig.mirror.conic):.4f} "
+            f"(std {_fmt(ms['conic_constant'], 4)}), vertex radius {1.0 / float(cal.rig.mirror.curvature):g} mm held"
+        )
     box = unc.get("rigid_box")
     if box:
         worst = max(

@@ -130,7 +130,7 @@ def test_a_covariance_without_the_shape_column_is_read(tmp_path):
     np.testing.assert_array_equal(cov, expected)
 
 
-def test_a_shape_without_dimensions_from_the_cli(tmp_path):
+def test_a_shape_without_dimensions_from_the_cli(tmp_path, capsys):
     """``"mirror_shape": {"kind": "hyperboloid"}``: no dimensions given, views through the
     mirror only.  The calibration writes a hyperboloid whose conic constant it estimated, with
     the gauge's vertex radius; with direct views the rim stage says what it is missing."""
@@ -151,6 +151,8 @@ def test_a_shape_without_dimensions_from_the_cli(tmp_path):
     assert doc["mirror"]["vertex_radius"] == GAUGE_VERTEX_RADIUS and doc["mirror"]["conic_constant"] != 0.0
     assert doc["uncertainty"]["mirror_std"]["conic_constant"] > 0.0
     assert doc["residuals"]["rms_px"] < 0.45
+    k, sd = doc["mirror"]["conic_constant"], doc["uncertainty"]["mirror_std"]["conic_constant"]
+    assert f"conic constant {k:.4f} (std {sd:.4f})" in capsys.readouterr().out
 
     from slcvjax._calibrate import calibrate
     from slcvjax._simulate import box_scene, simulate
