@@ -32,7 +32,7 @@ import numpy as np
 
 from ._camera import Camera
 from ._central import central_start
-from ._io import Calibration, Observations
+from ._io import Calibration, Observations, shape_missing
 from ._lasers import Lasers, line_plane_intersection
 from ._lm import (
     CONVERGED,
@@ -282,7 +282,9 @@ def _through_the_mirror(obs: Observations, freeze, loss, loss_scale, max_steps) 
     out the conic constant, the start searches it and the joint passes estimate it (the vertex
     radius held: the scale's gauge)."""
     shape = obs.mirror_shape
-    estimate = {"shape"} if shape.get("conic_constant") is None else set()
+    # a sphere's or a paraboloid's conic constant is its kind's; a hyperboloid's (or an
+    # ellipsoid's) left out is estimated
+    estimate = {"shape"} if "conic_constant" in shape_missing(shape) else set()
     starts = central_start(
         pack(obs),
         obs.image_size,
