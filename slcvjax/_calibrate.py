@@ -285,6 +285,8 @@ def _through_the_mirror(obs: Observations, freeze, loss, loss_scale, max_steps) 
     # a sphere's or a paraboloid's conic constant is its kind's; a hyperboloid's (or an
     # ellipsoid's) left out is estimated
     estimate = {"shape"} if "conic_constant" in shape_missing(shape) else set()
+    if shape["kind"] == "sphere":  # its vertex slides over it with its axis: only its centre is seen
+        freeze = set(freeze) | {"mirror_tilt"}
     starts = central_start(
         pack(obs),
         obs.image_size,

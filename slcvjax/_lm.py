@@ -727,10 +727,10 @@ class Masks(eqx.Module):
 
 
 def make_masks(params: Params, freeze: frozenset | set | tuple = (), estimate: frozenset | set | tuple = ()) -> Masks:
-    """Freeze masks from block names: camera, mirror, lasers, poses, chess_poses.  The mirror's
-    shape column (its conic constant) is estimated only where ``estimate`` names ``shape``, the
-    mirror is not frozen and is a conic one."""
-    known = {"camera", "mirror", "lasers", "poses", "chess_poses"}
+    """Freeze masks from block names: camera, mirror, mirror_tilt (the mirror's axis only),
+    lasers, poses, chess_poses.  The mirror's shape column (its conic constant) is estimated only
+    where ``estimate`` names ``shape``, the mirror is not frozen and is a conic one."""
+    known = {"camera", "mirror", "mirror_tilt", "lasers", "poses", "chess_poses"}
     bad = set(freeze) - known
     if bad:
         raise ValueError(
@@ -744,7 +744,8 @@ def make_masks(params: Params, freeze: frozenset | set | tuple = (), estimate: f
     glob = np.concatenate(
         [
             np.full(N_CAM, 0.0 if "camera" in freeze else 1.0),
-            np.full(N_MIR - 1, 0.0 if "mirror" in freeze else 1.0),
+            np.full(3, 0.0 if "mirror" in freeze else 1.0),
+            np.full(2, 0.0 if {"mirror", "mirror_tilt"} & set(freeze) else 1.0),
             [1.0 if shape_free else 0.0],
             np.full(N_LAS * n_l, 0.0 if "lasers" in freeze else 1.0),
         ]

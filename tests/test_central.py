@@ -160,3 +160,23 @@ def test_a_shape_without_dimensions_from_the_cli(tmp_path, capsys):
     direct, _ = simulate(box_scene(Rig(paper_camera(), mirror, _NO_LASERS), paper_views(3), n_chess_views=4))
     with pytest.raises(CalibrationError, match="mirror_shape: the rim stage needs the hyperboloid's vertex_radius"):
         calibrate(dataclasses.replace(direct, mirror_shape={"kind": "hyperboloid"}))
+
+
+def test_a_sphere_seen_through_itself_only_holds_its_axis():
+    """A sphere's vertex slides over it with its axis (only its centre is seen): seen through the
+    mirror only, the axis is held (std 0), the fit is at the noise and 4 views it never saw are
+    predicted at the noise with camera and mirror held."""
+    from slcvjax._calibrate import calibrate, report
+
+    mirror = ConicMirror.of_kind("sphere", [0.5, -0.3, 40.0], [0.015, -0.01, 1.0], 25.0, 18.0)
+    obs_all, _ = _through_mirror_only(Rig(paper_camera(), mirror, None), n_views=12, seed=5)
+    obs = dataclasses.replace(obs_all, views=obs_all.views[:8])
+    held = dataclasses.replace(obs_all, views=obs_all.views[8:])
+    res = calibrate(obs)
+    assert res.staged.reports[0].name == "central_start" and float(res.rig.mirror.conic) == 0.0
+    rep = report(res, obs)
+    assert rep["uncertainty"]["mirror_std"]["axis_tilt_deg"] == [0.0, 0.0]
+    assert 0.3 < rep["residuals"]["rms_px"] < 0.45
+    ev = calibrate(held, camera=res.rig.camera, mirror=res.rig.mirror, freeze={"camera", "mirror"}, loss="linear")
+    r = report(ev, held)["residuals"]
+    assert r["invalid"] == 0 and 0.3 < r["rms_px"] < 0.45, r["rms_px"]
