@@ -269,6 +269,16 @@ def calibrate(
             reported.
     """
     group = rigid_group(obs, rigid)
+    telecentric = obs.camera_projection == "telecentric"
+    if camera is not None and camera.telecentric != telecentric:
+        raise CalibrationError(
+            f"camera_projection: the observations say {obs.camera_projection}, the camera given is {camera.projection}"
+        )
+    if telecentric and camera is None and (obs.calibration_views or obs.mirror_shape is None):
+        raise CalibrationError(
+            "camera_projection: a telecentric camera is calibrated through a conic mirror only "
+            "(no calibration_views, a mirror_shape of kind sphere, paraboloid, hyperboloid or ellipsoid)"
+        )
     if camera is None and mirror is None and not obs.calibration_views and obs.mirror_shape is not None:
         res = _through_the_mirror(obs, freeze, loss, loss_scale, max_steps)
     else:
@@ -294,6 +304,7 @@ def _through_the_mirror(obs: Observations, freeze, loss, loss_scale, max_steps) 
         shape.get("vertex_radius"),
         shape.get("conic_constant"),
         shape.get("radius"),
+        telecentric=obs.camera_projection == "telecentric",
     )
     best = None
     for cam, mir, rep in starts:

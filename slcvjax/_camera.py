@@ -1,10 +1,16 @@
-"""The pinhole camera with Brown distortion, in OpenCV's conventions.
+"""The pinhole camera with Brown distortion, in OpenCV's conventions, and its telecentric twin.
 
 Pixels are OpenCV's (integer coordinates at pixel centres), the camera frame
 is OpenCV's (x right, y down, z forward) and the distortion coefficients are in
 OpenCV's order ``(k1, k2, p1, p2, k3)``.  :func:`project` agrees with
 ``cv2.projectPoints`` and :func:`undistort` with ``cv2.undistortPoints`` (with a termination criterion)
 run to convergence.
+
+A telecentric (orthographic) camera, as paracatadioptric cameras often have, sees along +z:
+a point ``(X, Y, Z)`` has the normalised point ``(X, Y) / L`` whatever its depth, ``L`` the
+camera's fixed ``unit`` (mm), and the same distortion and ``K`` make its pixel; its rays are
+parallel, each from ``(L x, L y, 0)`` along +z (:func:`pixel_to_line`).  The depth of the camera's
+origin is then a gauge: nothing it sees changes with it.
 """
 
 import equinox as eqx
@@ -23,6 +29,9 @@ class Camera(eqx.Module):
         fx, fy, cx, cy: focal lengths and principal point in pixels (0-d arrays).
         dist: (5,) distortion ``(k1, k2, p1, p2, k3)``.
         width, height: image size in pixels (static).
+        telecentric: an orthographic camera (static; see the module docstring).
+        unit: a telecentric camera's normalising length ``L`` (mm, static): its ``fx`` is in
+            pixels per ``L`` mm.
     """
 
     fx: Float[Array, ""]
@@ -32,15 +41,26 @@ class Camera(eqx.Module):
     dist: Float[Array, "5"]
     width: int = eqx.field(static=True)
     height: int = eqx.field(static=True)
+    telecentric: bool = eqx.field(static=True, default=False)
+    unit: float = eqx.field(static=True, default=1.0)
 
     def __check_init__(self):
         if self.width <= 0 or self.height <= 0:
             raise ValueError(f"Camera: image size must be positive, got {self.width}x{self.height}")
+        if not self.unit > 0:
+            raise ValueError(f"Camera: a telecentric camera's unit must be positive, got {self.unit}")
 
     @staticmethod
-    def create(fx, fy, cx, cy, dist, width: int, height: int) -> "Camera":
+    def create(fx, fy, cx, cy, dist, width: int, height: int, telecentric: bool = False, unit: float = 1.0) -> "Camera":
         f = lambda x: jnp.asarray(x, dtype=float)  # noqa: E731
-        return Camera(f(fx), f(fy), f(cx), f(cy), f(dist).reshape(5), int(width), int(height))
+        return Camera(
+            f(fx), f(fy), f(cx), f(cy), f(dist).reshape(5), int(width), int(height), bool(telecentric), float(unit)
+        )
+
+    @property
+    def projection(self) -> str:
+        """``perspective`` or ``telecentric``."""
+        return "telecentric" if self.telecentric else "perspective"
 
     @property
     def K(self) -> Float[Array, "3 3"]:
@@ -55,7 +75,7 @@ class Camera(eqx.Module):
 
     def with_params(self, p: Float[Array, "9"]) -> "Camera":
         """A camera with the 9 parameters of :meth:`params` replaced."""
-        return Camera(p[0], p[1], p[2], p[3], p[4:9], self.width, self.height)
+        return Camera(p[0], p[1], p[2], p[3], p[4:9], self.width, self.height, self.telecentric, self.unit)
 
     def retract(self, delta: Float[Array, "9"]) -> "Camera":
         return self.with_params(self.params() + delta)
@@ -82,8 +102,11 @@ def project(cam: Camera, p_cam: Float[Array, "3"]) -> tuple[Float[Array, "2"], B
     """Pixel of one 3D point of the camera frame (mm), as ``cv2.projectPoints``.
 
     Returns ``(uv, valid)``; ``valid`` is False for a point not in front of the
-    camera (``Z <= 1e-9``), where ``uv`` is finite but meaningless.
+    camera (``Z <= 1e-9``), where ``uv`` is finite but meaningless.  A telecentric camera sees
+    every point (``(X, Y) / L``, any depth).
     """
+    if cam.telecentric:
+        return project_normalized(cam, p_cam[:2] / cam.unit), jnp.array(True)
     z = p_cam[2]
     valid = z > 1e-9
     xy = jnp.stack([safe_div(p_cam[0], z), safe_div(p_cam[1], z)])
@@ -116,9 +139,33 @@ def undistort(cam: Camera, uv: Float[Array, "2"], iters: int = 12) -> tuple[Floa
 
 
 def pixel_to_ray(cam: Camera, uv: Float[Array, "2"]) -> tuple[Float[Array, "3"], Bool[Array, ""]]:
-    """Unit direction (camera frame) of the ray through a pixel, and its validity."""
+    """Unit direction (camera frame) of the ray through a pixel, and its validity (+z for every
+    pixel of a telecentric camera: see :func:`pixel_to_line`)."""
     xy, valid = undistort(cam, uv)
+    if cam.telecentric:
+        return jnp.array([0.0, 0.0, 1.0]), valid
     return safe_normalize(jnp.stack([xy[0], xy[1], jnp.ones_like(xy[0])])), valid
+
+
+def pixel_to_line(cam: Camera, uv: Float[Array, "2"]) -> tuple[Float[Array, "3"], Float[Array, "3"], Bool[Array, ""]]:
+    """The line a pixel sees, camera frame: ``(origin, unit direction, valid)``; the origin is
+    the camera's centre, or a telecentric camera's ``(L x, L y, 0)``."""
+    d, valid = pixel_to_ray(cam, uv)
+    if cam.telecentric:
+        xy, _ = undistort(cam, uv)
+        return jnp.stack([xy[0], xy[1], jnp.zeros_like(xy[0])]) * cam.unit, d, valid
+    return jnp.zeros(3), d, valid
+
+
+def viewing_direction(cam: Camera, x: Float[Array, "3"]) -> Float[Array, "3"]:
+    """The unit direction from the camera to a point it sees at ``x`` (camera frame): +z for a
+    telecentric camera."""
+    return view_direction(x, cam.telecentric)
+
+
+def view_direction(x: Float[Array, "3"], telecentric: bool) -> Float[Array, "3"]:
+    """:func:`viewing_direction` by the camera's kind alone."""
+    return jnp.array([0.0, 0.0, 1.0]) if telecentric else safe_normalize(x)
 
 
 def project_points(cam: Camera, points: ArrayLike) -> tuple[Array, Array]:

@@ -18,6 +18,11 @@ and the calibration keeps it.  A coarse grid over both gives the seeds (per valu
 its best scale, no two seeds neighbours on the grid: one per valley of the fit), and a
 Nelder-Mead simplex refines each within its seed's neighbours; the joint fit runs from each
 (:func:`._calibrate.calibrate`) and keeps the lowest cost.
+
+A telecentric camera (parallel rays along +z, :class:`._camera.Camera`) makes a paraboloid
+central (every reflected ray through its focus); the search is then over the scale ``g``
+alone (and a hyperboloid's eccentricity where not given): the camera's unit is the vertex
+radius, its depth a gauge (the vertex :data:`TELECENTRIC_DEPTH` vertex radii ahead).
 """
 
 import itertools
@@ -36,6 +41,7 @@ DISTANCES = (1.5, 2.5, 4.0, 7.0, 12.0, 20.0, 35.0)  # in vertex radii, mirrors w
 SCALES = tuple(np.geomspace(1.0, 200.0, 12))  # px per mm of mirror
 MAX_EVALUATIONS = 60  # of each simplex search
 N_STARTS = 3
+TELECENTRIC_DEPTH = 10.0  # in vertex radii: the vertex's depth before a telecentric camera (a gauge)
 
 
 def _rig(conic: float, d: float, g: float, R: float, size: tuple[int, int], radius: float | None):
@@ -56,6 +62,7 @@ def central_start(
     conic: float | None = None,
     radius: float | None = None,
     n_starts: int = N_STARTS,
+    telecentric: bool = False,
 ) -> list[tuple[Camera, ConicMirror, StageReport]]:
     """The best central (or, without a far focus, on-axis) rigs for the boards of ``pk``: one
     per valley of the fit, at most ``n_starts``, best first (the joint fit from each may end in
@@ -72,6 +79,7 @@ def central_start(
             above -1); searched where not.
         radius: the rim's radius (mm) where known; else the rim is put where it bounds nothing
             (ten vertex radii, or inside a closed conic's widest circle).
+        telecentric: the camera is telecentric (see the module docstring).
 
     Returns per start the camera, the mirror and the stage's report (the first-order RMS of the
     boards' fit).  Raises :class:`._staged.CalibrationError` where no candidate poses every board.
@@ -86,6 +94,8 @@ def central_start(
     if kind == "hyperboloid":
         first = ECCENTRICITIES if conic is None else (float(np.sqrt(-conic)),)
         free_first = conic is None
+    elif telecentric:  # the depth is a gauge: the scale alone
+        first, free_first = (TELECENTRIC_DEPTH,), False
     else:
         first = DISTANCES
         free_first = True
@@ -94,6 +104,11 @@ def central_start(
     def candidate(a: float, g: float) -> tuple[Camera, ConicMirror]:
         """``a``: the eccentricity of a hyperboloid (its far focus at the camera), else the
         vertex's distance in vertex radii."""
+        if telecentric:
+            k = (-a * a if conic is None else conic) if kind == "hyperboloid" else fixed_conic
+            cam, mir = _rig(k, TELECENTRIC_DEPTH * R, g, R, image_size, radius)
+            w, h = image_size
+            return Camera.create(g * R, g * R, cam.cx, cam.cy, np.zeros(5), w, h, True, R), mir
         if kind == "hyperboloid":
             return _rig(-a * a if conic is None else conic, R / (a - 1.0), g, R, image_size, radius)
         return _rig(fixed_conic, a * R, g, R, image_size, radius)
@@ -146,10 +161,12 @@ def central_start(
         fit = minimize(lambda x, a0=a0: rms(*of_x(x, a0)), x0, method="Nelder-Mead", options=opts)
         a, g = of_x(fit.x, a0) if rms(*of_x(fit.x, a0)) < rms(a0, g0) else (a0, g0)
         cam, mir = candidate(a, g)
-        what = f"eccentricity {a:.4g}" if kind == "hyperboloid" else f"vertex at {a * R:.4g} mm"
-        notes = [
-            f"central start: {kind}, vertex radius {R:g} mm (the gauge), {what}, focal length {float(cam.fx):.5g} px"
-        ]
+        if kind == "hyperboloid":
+            what = f"eccentricity {a:.4g}"
+        else:
+            what = f"vertex at {a * R:.4g} mm" + (" (the depth's gauge)" if telecentric else "")
+        lens = f"telecentric, {g:.5g} px per mm" if telecentric else f"focal length {float(cam.fx):.5g} px"
+        notes = [f"central start: {kind}, vertex radius {R:g} mm (the gauge), {what}, {lens}"]
         out.append((cam, mir, StageReport("central_start", rms(a, g), "px (first order)", notes)))
     out.sort(key=lambda c: c[2].rms)
     for k, (_, _, rep) in enumerate(out):

@@ -17,7 +17,9 @@ s(x^2 + y^2) a`` (smooth through the vertex, unlike polar coordinates) and Newto
 law of reflection, the bisector ``(M - O)/|M - O| + (M - P)/|M - P|`` orthogonal to both
 tangents, with an implicit derivative (``._newton``).  The start is the least optical path
 ``|M - O| + |M - P|`` over a few points of the target's axial half-plane (for a mirror
-convex towards both points the reflection point is that path's minimum).
+convex towards both points the reflection point is that path's minimum).  A telecentric
+camera's rays are parallel to +z: the direction to the camera is then ``-z`` and the optical
+path from its image plane ``M_z + |M - P|``.
 """
 
 import equinox as eqx
@@ -25,6 +27,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
+from ._camera import view_direction
 from ._newton import newton_implicit, newton_residual_norm
 from ._revolution import RayHit, retract_pose, rim_circle
 from ._safe import orthonormal_basis, safe_div, safe_norm, safe_normalize, safe_sqrt
@@ -184,42 +187,49 @@ class ConicMirror(eqx.Module):
         implicit: bool = True,
         rim_margin: float = 0.0,
         apex_margin: float = 0.0,
+        telecentric: bool = False,
     ) -> tuple[Float[Array, "3"], Bool[Array, ""]]:
         """The mirror point whose reflection sends the camera's ray through ``p_cam`` (see
         ``._mirror.solve_mirror_point``; ``apex_margin`` is unused: the vertex is smooth)."""
         del apex_margin
         e1, e2 = orthonormal_basis(self.axis)
-        x0 = _start(self, p_cam, e1, e2)
+        x0 = _start(self, p_cam, e1, e2, telecentric)
         params = (self, p_cam)
-        x = newton_implicit(_reflection_residual, x0, params, iters, implicit=implicit)
+        residual = _reflection_residual_telecentric if telecentric else _reflection_residual
+        x = newton_implicit(residual, x0, params, iters, implicit=implicit)
         m, rho2 = self._point(x, e1, e2)
         n = self.surface_normal(m)
         c, k1 = self.curvature, 1.0 + self.conic
         r_max = self.radius * (1.0 + rim_margin)
         rho2_sg = jax.lax.stop_gradient(rho2)
         valid = (
-            (newton_residual_norm(_reflection_residual, x, params) < 1e-9)
+            (newton_residual_norm(residual, x, params) < 1e-9)
             & (rho2_sg <= r_max * r_max * (1.0 + 1e-12))
             & (k1 * c * c * rho2_sg < 1.0)
-            & (jnp.dot(n, -m) > 0.0)
+            & (jnp.dot(n, -view_direction(m, telecentric)) > 0.0)
             & (jnp.dot(n, p_cam - m) > 0.0)
         )
         return m, valid
 
 
-def _reflection_residual(x, params):
+def _reflection_residual(x, params, telecentric: bool = False):
     """The bisector of the directions to the camera and to the target, along the two tangents at ``M(x, y)``."""
     mirror, target = params
     e1, e2 = orthonormal_basis(mirror.axis)
     m, rho2 = mirror._point(x, e1, e2)
     slope2 = 2.0 * mirror.sag_slope(rho2)
-    bis = safe_normalize(m) + safe_normalize(m - target)
+    bis = view_direction(m, telecentric) + safe_normalize(m - target)
     t_x = e1 + slope2 * x[0] * mirror.axis
     t_y = e2 + slope2 * x[1] * mirror.axis
     return jnp.stack([jnp.dot(bis, t_x), jnp.dot(bis, t_y)])
 
 
-def _start(mirror: ConicMirror, target, e1, e2):
+def _reflection_residual_telecentric(x, params):
+    """:func:`_reflection_residual` for a telecentric camera."""
+    return _reflection_residual(x, params, telecentric=True)
+
+
+def _start(mirror: ConicMirror, target, e1, e2, telecentric: bool = False):
     """The least optical path over points of the target's axial half-plane (inside the rim)."""
     q = target - mirror.apex
     radial = q - jnp.dot(q, mirror.axis) * mirror.axis
@@ -231,6 +241,7 @@ def _start(mirror: ConicMirror, target, e1, e2):
     rho_max = jnp.where(k1 > 0, 0.999 / (c * safe_sqrt(jnp.maximum(k1, 1e-300))), jnp.inf)
     rho = jnp.minimum(rho, rho_max)
     pts = mirror.apex + rho[:, None] * u + mirror.sag(rho * rho)[:, None] * mirror.axis
-    path = jnp.linalg.norm(pts, axis=1) + jnp.linalg.norm(pts - target, axis=1)
+    to_camera = pts[:, 2] if telecentric else jnp.linalg.norm(pts, axis=1)
+    path = to_camera + jnp.linalg.norm(pts - target, axis=1)
     best = rho[jnp.argmin(path)]
     return jax.lax.stop_gradient(best * jnp.stack([jnp.dot(u, e1), jnp.dot(u, e2)]))

@@ -181,6 +181,11 @@ class Observations:
     # the mirror's shape (``._mirror.shape_json``'s form) where it is not the cone of
     # ``mirror_radius`` and ``mirror_height`` (the rim circle's radius and sag, for every kind)
     mirror_shape: dict | None = None
+    # ``perspective`` (a pinhole) or ``telecentric`` (orthographic: see ``._camera``)
+    camera_projection: str = "perspective"
+
+
+PROJECTIONS = ("perspective", "telecentric")
 
 
 def _pixels(ctx: _Ctx, val: Any, n: int, where: str) -> tuple[np.ndarray, np.ndarray]:
@@ -261,6 +266,9 @@ def read_observations(path: str | os.PathLike) -> Observations:
     if units is not None and units != "mm":
         ctx.fail("units", f"expected 'mm', got {units!r}")
     (w, h), radius, height, n_lasers, shape = read_sensor_fields(ctx, doc)
+    projection = ctx.get(doc, "camera_projection", "", str, optional=True) or "perspective"
+    if projection not in PROJECTIONS:
+        ctx.fail("camera_projection", f"expected one of {', '.join(PROJECTIONS)}, got {projection!r}")
 
     boards_doc = ctx.get(doc, "boards", "", dict)
     boards: dict[str, np.ndarray] = {}
@@ -321,9 +329,10 @@ def read_observations(path: str | os.PathLike) -> Observations:
         "boards",
         "calibration_views",
         "views",
+        "camera_projection",
     }
     extra = {k: v for k, v in doc.items() if k not in known}
-    return Observations((w, h), radius, height, n_lasers, boards, cal_views, views, extra, shape)
+    return Observations((w, h), radius, height, n_lasers, boards, cal_views, views, extra, shape, projection)
 
 
 def _px_list(px: np.ndarray, seen: np.ndarray) -> list:
@@ -338,6 +347,7 @@ def observations_to_json(obs: Observations) -> dict:
         "image_size": [int(obs.image_size[0]), int(obs.image_size[1])],
         "mirror_shape": obs.mirror_shape or {"kind": "cone", "radius": obs.mirror_radius, "height": obs.mirror_height},
         "n_lasers": int(obs.n_lasers),
+        **({} if obs.camera_projection == "perspective" else {"camera_projection": obs.camera_projection}),
         "boards": {n: {"points": np.asarray(p, float).tolist()} for n, p in obs.boards.items()},
         "calibration_views": [
             {"name": v.name, "board": v.board, "pixels": _px_list(v.pixels, v.seen)} for v in obs.calibration_views
@@ -412,6 +422,7 @@ def calibration_to_json(cal: Calibration) -> dict:
             "height": cam.height,
             "K": np.asarray(cam.K, float).tolist(),
             "dist": np.asarray(cam.dist, float).tolist(),
+            **({"projection": "telecentric", "unit_mm": cam.unit} if cam.telecentric else {}),
         },
     }
     if mir is None:  # a camera-only calibration (``slcvjax camera``)
@@ -457,7 +468,15 @@ def read_calibration(path: str | os.PathLike) -> Calibration:
     if K[0, 0] <= 0 or K[1, 1] <= 0:
         ctx.fail("camera.K", "focal lengths must be positive")
     dist = ctx.vector(ctx.get(c, "dist", "camera"), 5, "camera.dist")
-    cam = Camera.create(K[0, 0], K[1, 1], K[0, 2], K[1, 2], dist, w, h)
+    projection = ctx.get(c, "projection", "camera", str, optional=True) or "perspective"
+    if projection not in PROJECTIONS:
+        ctx.fail("camera.projection", f"expected one of {', '.join(PROJECTIONS)}, got {projection!r}")
+    unit = 1.0
+    if projection == "telecentric":
+        unit = float(ctx.number(ctx.get(c, "unit_mm", "camera"), "camera.unit_mm"))
+        if not unit > 0:
+            ctx.fail("camera.unit_mm", f"must be positive, got {unit:g}")
+    cam = Camera.create(K[0, 0], K[1, 1], K[0, 2], K[1, 2], dist, w, h, projection == "telecentric", unit)
 
     m = ctx.get(doc, "mirror", "", dict, optional=True)
     mirror = None

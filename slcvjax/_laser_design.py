@@ -133,7 +133,7 @@ def _spot_margins(rig: Rig, x, body, proj):
     the rim, mm clear of the body, px inside the image; continuous also where it is not seen:
     the mirror's surface continued past its rim) and the mirror point that sees it."""
     cam, mir = rig.camera, rig.mirror
-    m, _ = solve_mirror_point(mir, x, rim_margin=1.0)
+    m, _ = solve_mirror_point(mir, x, rim_margin=1.0, telecentric=cam.telecentric)
     rim = mir.height - jnp.dot(m - mir.apex, mir.axis)
     clear = body_clearance(m, safe_normalize(x - m), mir, body[0], body[1])
     uv, _ = project(cam, m)

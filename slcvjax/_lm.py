@@ -41,7 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ._camera import Camera, in_image, pixel_to_ray, project
+from ._camera import Camera, in_image, pixel_to_line, project
 from ._conic import ConicMirror
 from ._lasers import Lasers, line_plane_intersection
 from ._mirror import ConeMirror, project_through_mirror
@@ -169,10 +169,10 @@ def _project_local(d, cam, mir, x, px):
 
 def rim_value(cam: Camera, mir: ConeMirror, uv: Float[Array, "2"]) -> tuple[Float[Array, ""], Bool[Array, ""]]:
     """``F(uv) = |X(uv) - C| - r`` (mm): the pixel's ray on the rim's plane against the rim circle."""
-    d, ok = pixel_to_ray(cam, uv)
+    o, d, ok = pixel_to_line(cam, uv)
     centre = mir.apex + mir.height * mir.axis
-    lam = safe_div(jnp.dot(centre, mir.axis), jnp.dot(d, mir.axis))
-    return safe_norm(lam * d - centre) - mir.radius, ok & (lam > 0.0)
+    lam = safe_div(jnp.dot(centre - o, mir.axis), jnp.dot(d, mir.axis))
+    return safe_norm(o + lam * d - centre) - mir.radius, ok & (lam > 0.0)
 
 
 def rim_scale(cam: Camera, mir: ConeMirror, uv: Float[Array, "2"]) -> Float[Array, ""]:
@@ -729,7 +729,9 @@ class Masks(eqx.Module):
 def make_masks(params: Params, freeze: frozenset | set | tuple = (), estimate: frozenset | set | tuple = ()) -> Masks:
     """Freeze masks from block names: camera, mirror, mirror_tilt (the mirror's axis only),
     lasers, poses, chess_poses.  The mirror's shape column (its conic constant) is estimated only
-    where ``estimate`` names ``shape``, the mirror is not frozen and is a conic one."""
+    where ``estimate`` names ``shape``, the mirror is not frozen and is a conic one.  Before a
+    telecentric camera the mirror's depth (its apex's z) is held: it is the gauge of a view
+    along parallel rays (mirror and boards slide along them together unseen)."""
     known = {"camera", "mirror", "mirror_tilt", "lasers", "poses", "chess_poses"}
     bad = set(freeze) - known
     if bad:
@@ -744,7 +746,8 @@ def make_masks(params: Params, freeze: frozenset | set | tuple = (), estimate: f
     glob = np.concatenate(
         [
             np.full(N_CAM, 0.0 if "camera" in freeze else 1.0),
-            np.full(3, 0.0 if "mirror" in freeze else 1.0),
+            np.full(2, 0.0 if "mirror" in freeze else 1.0),
+            [0.0 if "mirror" in freeze or params.rig.camera.telecentric else 1.0],
             np.full(2, 0.0 if {"mirror", "mirror_tilt"} & set(freeze) else 1.0),
             [1.0 if shape_free else 0.0],
             np.full(N_LAS * n_l, 0.0 if "lasers" in freeze else 1.0),

@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from ._camera import Camera, in_image, pixel_to_ray, project
+from ._camera import Camera, in_image, pixel_to_line, project, view_direction
 from ._conic import KINDS as CONIC_KINDS
 from ._conic import ConicMirror
 from ._newton import newton_implicit, newton_residual_norm
@@ -182,8 +182,8 @@ def back_project(cam: Camera, mirror: ConeMirror, uv: Float[Array, "2"]) -> Mirr
     Camera frame, mm.  ``valid`` is False where the pixel's ray misses the
     mirror, meets it from inside, or the undistortion did not converge.
     """
-    d, ok_cam = pixel_to_ray(cam, uv)
-    hit = intersect(mirror, jnp.zeros(3), d)
+    origin, d, ok_cam = pixel_to_line(cam, uv)
+    hit = intersect(mirror, origin, d)
     n = surface_normal(mirror, hit.point)
     out = reflect(d, n)
     valid = ok_cam & hit.valid & (jnp.dot(d, n) < 0.0)
@@ -196,19 +196,28 @@ def _mirror_point(s, theta, apex, axis, k):
     return apex + s * axis + k * s * u, u, e1, e2
 
 
-def _reflection_residual(x, params):
-    """The two tangential components of ``(M-O)/|M-O| + (M-P)/|M-P|`` at ``M(s, theta)``."""
+def _reflection_residual(x, params, telecentric: bool = False):
+    """The two tangential components of ``(M-O)/|M-O| + (M-P)/|M-P|`` at ``M(s, theta)``
+    (``+z`` for the first where the camera is telecentric)."""
     apex, axis, k, target = params
     s, theta = x[0], x[1]
     m, u, e1, e2 = _mirror_point(s, theta, apex, axis, k)
-    bis = safe_normalize(m) + safe_normalize(m - target)
+    bis = view_direction(m, telecentric) + safe_normalize(m - target)
     t_s = (axis + k * u) / jnp.sqrt(1.0 + k * k)
     t_th = -jnp.sin(theta) * e1 + jnp.cos(theta) * e2
     return jnp.stack([jnp.dot(bis, t_s), jnp.dot(bis, t_th)])
 
 
-def _initial_guess(mirror: ConeMirror, target):
-    """On-axis closed form: reflect the camera across the generatrix in the target's axial plane."""
+def _reflection_residual_telecentric(x, params):
+    """:func:`_reflection_residual` for a telecentric camera."""
+    return _reflection_residual(x, params, telecentric=True)
+
+
+def _initial_guess(mirror: ConeMirror, target, telecentric: bool = False):
+    """On-axis closed form: reflect the camera across the generatrix in the target's axial plane
+    (a telecentric camera: its viewing direction, which a generatrix reflects into one direction)."""
+    if telecentric:
+        return _initial_guess_telecentric(mirror, target)
     a, k = mirror.axis, mirror.k
     e1, e2 = orthonormal_basis(a)
     z_cam = jnp.dot(-mirror.apex, a)  # the camera centre's axial coordinate (< 0)
@@ -227,6 +236,25 @@ def _initial_guess(mirror: ConeMirror, target):
     return jnp.stack([s0, theta])
 
 
+def _initial_guess_telecentric(mirror: ConeMirror, target):
+    a, k = mirror.axis, mirror.k
+    e1, e2 = orthonormal_basis(a)
+    q = target - mirror.apex
+    z_p = jnp.dot(q, a)
+    radial = q - z_p * a
+    rho_p = jnp.sqrt(jnp.sum(radial**2) + 1e-30)
+    u = radial / rho_p
+    theta = jnp.arctan2(jnp.dot(radial, e2), jnp.dot(radial, e1))
+    view = jnp.array([0.0, 0.0, 1.0])
+    v = jnp.stack([jnp.dot(view, u), jnp.dot(view, a)])  # the viewing direction in (rho, z)
+    g = jnp.stack([k, jnp.ones_like(k)]) / jnp.sqrt(1.0 + k * k)
+    out = 2.0 * jnp.dot(v, g) * g - v  # every point of the generatrix reflects it so
+    # M = s (k, 1) with P - M along ``out``
+    s0 = safe_div(rho_p * out[1] - z_p * out[0], k * out[1] - out[0])
+    s0 = jnp.clip(s0, 0.02 * mirror.height, 1.5 * mirror.height)
+    return jax.lax.stop_gradient(jnp.stack([s0, theta]))
+
+
 class MirrorProjection(NamedTuple):
     """A point projected through the mirror: pixel, mirror point, and validity flags."""
 
@@ -242,6 +270,7 @@ def solve_mirror_point(
     implicit: bool = True,
     rim_margin: float = 0.0,
     apex_margin: float = 0.0,
+    telecentric: bool = False,
 ) -> tuple[Float[Array, "3"], Bool[Array, ""]]:
     """The mirror point whose reflection sends the camera's ray through ``p_cam``.
 
@@ -253,25 +282,32 @@ def solve_mirror_point(
     generatrix's tangent plane past the apex (``s > -h apex_margin``): the solution
     in ``(s, theta)`` and its pixel continue smoothly through the apex, so a point
     seen right at the apex is not lost when the estimate moves it a hair across.
-    Implicit derivative (``implicit=True``) or unrolled (baseline).  Another mirror of
+    Implicit derivative (``implicit=True``) or unrolled (baseline).  ``telecentric``: the
+    camera's rays are parallel to +z (:class:`._camera.Camera`).  Another mirror of
     revolution (``._conic.ConicMirror``) solves its own reflection.
     """
     if not isinstance(mirror, ConeMirror):
         return mirror.solve_mirror_point(
-            p_cam, iters=max(iters, 12), implicit=implicit, rim_margin=rim_margin, apex_margin=apex_margin
+            p_cam,
+            iters=max(iters, 12),
+            implicit=implicit,
+            rim_margin=rim_margin,
+            apex_margin=apex_margin,
+            telecentric=telecentric,
         )
     params = (mirror.apex, mirror.axis, mirror.k, p_cam)
-    x0 = _initial_guess(mirror, p_cam)
-    x = newton_implicit(_reflection_residual, x0, params, iters, implicit=implicit)
+    x0 = _initial_guess(mirror, p_cam, telecentric)
+    residual = _reflection_residual_telecentric if telecentric else _reflection_residual
+    x = newton_implicit(residual, x0, params, iters, implicit=implicit)
     m, u, _, _ = _mirror_point(x[0], x[1], mirror.apex, mirror.axis, mirror.k)
     n = safe_normalize(u - mirror.k * mirror.axis)  # the generatrix's normal (surface_normal for s > 0)
     s = jax.lax.stop_gradient(x[0])
     s_min = jnp.where(apex_margin > 0, -apex_margin * mirror.height, 1e-9)
     valid = (
-        (newton_residual_norm(_reflection_residual, x, params) < 1e-9)
+        (newton_residual_norm(residual, x, params) < 1e-9)
         & (s > s_min)
         & (s <= mirror.height * (1.0 + 1e-12 + rim_margin))
-        & (jnp.dot(n, -m) > 0.0)
+        & (jnp.dot(n, -view_direction(m, telecentric)) > 0.0)
         & (jnp.dot(n, p_cam - m) > 0.0)
     )
     return m, valid
@@ -311,7 +347,13 @@ def project_through_mirror(
     ``uv`` is then finite but meaningless, and gradients stay finite.
     """
     m, ok = solve_mirror_point(
-        mirror, p_cam, iters=iters, implicit=implicit, rim_margin=rim_margin, apex_margin=apex_margin
+        mirror,
+        p_cam,
+        iters=iters,
+        implicit=implicit,
+        rim_margin=rim_margin,
+        apex_margin=apex_margin,
+        telecentric=cam.telecentric,
     )
     uv, ok_cam = project(cam, m)
     valid = ok & ok_cam & in_image(cam, jax.lax.stop_gradient(uv))

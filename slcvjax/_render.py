@@ -296,6 +296,8 @@ class Renderer:
 
     def chessboard(self, T_cam_board: Pose, cols: int, rows: int, square: float, seed: int = 0) -> np.ndarray:
         """One direct chessboard image (BGR uint8): ``cols x rows`` inner corners at ``(i, j) * square``, mm."""
+        if self.camera.telecentric:
+            raise ValueError("chessboard: direct views are rendered for a perspective camera only")
         if self._chess_rays is None:
             self._chess_rays = _camera_rays(self.camera, self._samples)
         grid = jnp.asarray([cols, rows, square], dtype=float)
