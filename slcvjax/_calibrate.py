@@ -26,6 +26,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -73,6 +74,7 @@ from ._staged import (
     RAYLEIGH_MEDIAN,
     CalibrationError,
     Staged,
+    StageReport,
     _flipped,
     board_poses,
     fit_lasers,
@@ -279,11 +281,97 @@ def calibrate(
             "camera_projection: a telecentric camera is calibrated through a conic mirror only "
             "(no calibration_views, a mirror_shape of kind sphere, paraboloid, hyperboloid or ellipsoid)"
         )
-    if camera is None and mirror is None and not obs.calibration_views and obs.mirror_shape is not None:
+    auto = obs.mirror_shape is not None and obs.mirror_shape["kind"] == "auto"
+    if auto and (camera is not None or mirror is not None or obs.calibration_views):
+        raise CalibrationError(
+            "mirror_shape.kind: auto is chosen from views through the mirror alone "
+            "(no calibration_views, no camera or mirror to start from)"
+        )
+    if auto:
+        res = _auto_kind(obs, freeze, loss, loss_scale, max_steps)
+    elif camera is None and mirror is None and not obs.calibration_views and obs.mirror_shape is not None:
         res = _through_the_mirror(obs, freeze, loss, loss_scale, max_steps)
     else:
         res = _calibrate_lockstep([obs], camera, freeze, loss, loss_scale, max_steps, _solve_loop, mirror=mirror)[0]
     return _rigid_refine(res, obs, group, max_steps) if group else res
+
+
+AUTO_KINDS = ("hyperboloid", "paraboloid", "sphere")  # a hyperboloid's conic constant may cross to an ellipsoid's
+AUTO_FOLDS = 5
+
+
+def held_out_rms(result: "CalibrationResult", held: Observations) -> tuple[float, int, int]:
+    """``(RMS px, observations used, left invalid)`` of views a calibration did not see: its
+    camera and mirror held, the views' poses fitted by plain least squares."""
+    from ._mirror import shape_json
+
+    rig = result.rig
+    held = dataclasses.replace(held, mirror_shape=shape_json(rig.mirror), camera_projection=rig.camera.projection)
+    ev = calibrate(held, camera=rig.camera, mirror=rig.mirror, freeze={"camera", "mirror"}, loss="linear")
+    r = report(ev, held)["residuals"]
+    n = sum(int(s.sum()) for v in held.views for _, s in v.boards.values()) + sum(len(v.spots) for v in held.views)
+    return float(r["rms_px"]), n - int(r["invalid"]), int(r["invalid"])
+
+
+def _auto_kind(obs: Observations, freeze, loss, loss_scale, max_steps) -> "CalibrationResult":
+    """``mirror_shape.kind = "auto"``: each of :data:`AUTO_KINDS` fitted with
+    :data:`AUTO_FOLDS`-fold cross-validation over the views (every fifth view held out in turn),
+    the kind of the least held-out RMS (fewest held-out observations off the model first) then
+    fitted on every view; the stage ``mirror_kind`` reports each kind's figure, and says so where
+    kinds lie within two standard errors of the best (the views do not determine the kind: a
+    camera's distortion and the mirror's place absorb much of a shape's difference)."""
+    from tqdm.auto import tqdm
+
+    n = len(obs.views)
+    if n < 2:
+        raise CalibrationError("mirror_shape.kind: auto picks the kind by held-out views: it needs at least 2 views")
+    k = min(AUTO_FOLDS, n)
+    folds = [list(range(i, n, k)) for i in range(k)]
+    dims = {key: obs.mirror_shape[key] for key in ("vertex_radius",) if key in obs.mirror_shape}
+    scores: dict[str, tuple[int, float]] = {}
+    counted: dict[str, int] = {}
+    with tqdm(total=len(AUTO_KINDS) * k, desc="mirror kind (held-out views)", leave=False, disable=None) as bar:
+        for kind in AUTO_KINDS:
+            o_kind = dataclasses.replace(obs, mirror_shape={"kind": kind} | dims)
+            sq, used, bad = 0.0, 0, 0
+            for fold in folds:
+                train = dataclasses.replace(o_kind, views=[v for i, v in enumerate(obs.views) if i not in fold])
+                held = dataclasses.replace(o_kind, views=[obs.views[i] for i in fold])
+                try:
+                    rms, n_used, n_bad = held_out_rms(
+                        _through_the_mirror(train, freeze, loss, loss_scale, max_steps), held
+                    )
+                except CalibrationError:
+                    sq, used, bad = np.inf, 1, n
+                    bar.update(len(folds) - folds.index(fold))
+                    break
+                sq, used, bad = sq + rms * rms * n_used, used + n_used, bad + n_bad
+                bar.update(1)
+            scores[kind] = (bad, float(np.sqrt(sq / max(used, 1))))
+            counted[kind] = used
+    best = min(AUTO_KINDS, key=lambda kd: scores[kd])
+    if not np.isfinite(scores[best][1]):
+        raise CalibrationError("mirror_shape.kind: no kind of mirror fits these views")
+    res = _through_the_mirror(
+        dataclasses.replace(obs, mirror_shape={"kind": best} | dims), freeze, loss, loss_scale, max_steps
+    )
+    notes = [
+        f"{kd}: held-out RMS {scores[kd][1]:.4f} px"
+        + (f", {scores[kd][0]} held-out observation(s) off the model" if scores[kd][0] else "")
+        for kd in AUTO_KINDS
+    ]
+    notes.append(f"chosen: {best} (fitted as a {res.rig.mirror.kind}), {k}-fold over {n} views")
+    # two standard errors of the held-out RMS (each observation two residuals): kinds within it
+    # are not told apart by these views
+    margin = 2.0 * scores[best][1] / np.sqrt(2.0 * counted[best])
+    tied = [kd for kd in AUTO_KINDS if scores[kd][0] == scores[best][0] and scores[kd][1] <= scores[best][1] + margin]
+    if len(tied) > 1:
+        notes.append(
+            f"not determined: the held-out views do not tell {', '.join(tied)} apart "
+            f"(within two standard errors, {margin:.3f} px)"
+        )
+    res.staged.reports.insert(0, StageReport("mirror_kind", scores[best][1], "px (held out)", notes))
+    return res
 
 
 def _through_the_mirror(obs: Observations, freeze, loss, loss_scale, max_steps) -> "CalibrationResult":
@@ -314,6 +402,12 @@ def _through_the_mirror(obs: Observations, freeze, loss, loss_scale, max_steps) 
         res.staged.reports.insert(0, rep)
         if best is None or res.passes[-1].cost < best.passes[-1].cost:
             best = res
+    if "radius" not in shape:  # the rim bounds nothing: where the estimate closed the conic, inside its widest circle
+        mir = best.rig.mirror
+        k1, c = 1.0 + float(mir.conic), float(mir.curvature)
+        if k1 > 0 and k1 * (c * float(mir.radius)) ** 2 >= 1.0:
+            rim = jnp.asarray(0.999 / (c * np.sqrt(k1)))
+            best.params = eqx.tree_at(lambda p: p.rig.mirror.radius, best.params, rim)
     return best
 
 

@@ -204,7 +204,9 @@ def _pixels(ctx: _Ctx, val: Any, n: int, where: str) -> tuple[np.ndarray, np.nda
 
 
 def shape_keys(kind: str) -> list[str]:
-    """The dimensions a conic mirror of ``kind`` is given by."""
+    """The dimensions a conic mirror of ``kind`` is given by (``auto``: none)."""
+    if kind == "auto":
+        return []
     return ["vertex_radius", "radius"] + (["conic_constant"] if kind in ("hyperboloid", "ellipsoid") else [])
 
 
@@ -224,8 +226,14 @@ def read_shape(ctx: "_Ctx", shape: Any, where: str, partial: bool = False) -> tu
     from ._mirror import MIRROR_KINDS, mirror_of_shape
 
     kind = ctx.get(shape, "kind", where, str)
+    if partial and kind == "auto":  # the kind chosen by held-out views (``._calibrate.calibrate``)
+        auto: dict = {"kind": "auto"}
+        if "vertex_radius" in shape:
+            auto["vertex_radius"] = ctx.positive(shape["vertex_radius"], f"{where}.vertex_radius")
+        return 0.0, 0.0, auto
     if kind not in MIRROR_KINDS:
-        ctx.fail(f"{where}.kind", f"unknown mirror kind {kind!r} (known: {', '.join(MIRROR_KINDS)})")
+        known = ", ".join(MIRROR_KINDS + (("auto",) if partial else ()))
+        ctx.fail(f"{where}.kind", f"unknown mirror kind {kind!r} (known: {known})")
     if kind == "cone":
         radius = ctx.positive(ctx.get(shape, "radius", where), f"{where}.radius")
         return radius, ctx.positive(ctx.get(shape, "height", where), f"{where}.height"), None
