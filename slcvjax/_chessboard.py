@@ -29,10 +29,35 @@ def board_points(cols: int, rows: int, square: float) -> np.ndarray:
     return np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], axis=1)
 
 
-def detect_corners(path: str | Path, pattern: tuple[int, int]) -> tuple[np.ndarray | None, tuple[int, int]]:
+OMNI_WINDOW = 5  # px: the refiner's half-window through a mirror (which bends the edges within a larger one)
+
+
+def refine_windows(corners: np.ndarray, pattern: tuple[int, int], largest: int = OMNI_WINDOW) -> np.ndarray:
+    """Each corner's refiner half-window (px) in a grid seen through a mirror: ``largest``, or half
+    the distance to its nearest grid neighbour where that is less (at least 2), so that its window
+    stays inside the squares that meet at it (a board seen through a convex mirror is squeezed
+    several times over across the image, and bent within a large window)."""
+    cols, rows = pattern
+    g = np.asarray(corners, float).reshape(rows, cols, 2)
+    near = np.full((rows, cols), np.inf)
+    for axis in (0, 1):
+        if g.shape[axis] > 1:
+            d = np.linalg.norm(np.diff(g, axis=axis), axis=2)
+            lo = [slice(None)] * 2
+            hi = [slice(None)] * 2
+            lo[axis], hi[axis] = slice(None, -1), slice(1, None)
+            near[tuple(lo)] = np.minimum(near[tuple(lo)], d)
+            near[tuple(hi)] = np.minimum(near[tuple(hi)], d)
+    return np.clip(np.where(np.isfinite(near), near // 2, largest), 2, largest).astype(int).ravel()
+
+
+def detect_corners(
+    path: str | Path, pattern: tuple[int, int], window: int | None = 11
+) -> tuple[np.ndarray | None, tuple[int, int]]:
     """Sub-pixel inner corners (N, 2) of a chessboard image, or None where none is found.
 
-    Raises :class:`CalibrationError` for a file that cannot be read as an image.
+    ``window``: the refiner's half-window in px (``None``: each corner's own,
+    :func:`refine_windows`).  Raises :class:`CalibrationError` for a file that cannot be read as an image.
     """
     img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     if img is None:
@@ -44,8 +69,17 @@ def detect_corners(path: str | Path, pattern: tuple[int, int]) -> tuple[np.ndarr
     if not found:
         return None, size
     crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-3)
-    corners = cv2.cornerSubPix(img, corners, (11, 11), (-1, -1), crit)
-    return corners.reshape(-1, 2).astype(float), size
+    if window is not None:
+        corners = cv2.cornerSubPix(img, corners, (int(window), int(window)), (-1, -1), crit)
+        return corners.reshape(-1, 2).astype(float), size
+    windows = refine_windows(corners.reshape(-1, 2), pattern)
+    out = corners.reshape(-1, 2).astype(np.float32)
+    for w in np.unique(windows):
+        sel = windows == w
+        out[sel] = cv2.cornerSubPix(img, out[sel].reshape(-1, 1, 2).copy(), (int(w), int(w)), (-1, -1), crit).reshape(
+            -1, 2
+        )
+    return out.astype(float), size
 
 
 @dataclass

@@ -294,6 +294,11 @@ def print_report(cal, name: str = "") -> None:
         print(f"rim        {res['rim_outliers']} rim pixel(s) more than 5 sigma (the rim's own) off the rim")
     if res["invalid"]:
         print(f"invalid    {res['invalid']} observation(s) fall outside the model (off the mirror or the sensor)")
+    for st in cal.extra["stages"]["staged"]["reports"]:
+        if st["stage"] == "mirror_kind":
+            print("mirror kind " + "; ".join(st["notes"]))
+    if cal.rig.camera.telecentric:
+        print(f"camera     telecentric (fx, fy in px per {cal.rig.camera.unit:g} mm; its depth is the gauge, held)")
     cs = unc["camera_std"]
     print(f"camera std fx {_fmt(cs['fx'])} fy {_fmt(cs['fy'])} cx {_fmt(cs['cx'])} cy {_fmt(cs['cy'])} px")
     ms = unc["mirror_std"]
@@ -405,10 +410,7 @@ def _cmd_camera(args) -> int:
     from ._rig import Rig
     from ._staged import CalibrationError
 
-    try:
-        cols, rows = (int(x) for x in args.board.lower().split("x"))
-    except ValueError:
-        raise FormatError(f"--board: expected COLSxROWS inner corners such as 9x6, got {args.board!r}") from None
+    cols, rows = _board_arg(args.board)
     if args.square <= 0:
         raise FormatError(f"--square: must be positive, got {args.square}")
     try:
@@ -441,6 +443,54 @@ def _cmd_camera(args) -> int:
     if args.export_opencv:
         export_opencv(args.export_opencv, c)
         print(f"wrote {args.export_opencv}")
+    return 0
+
+
+def _board_arg(text: str) -> tuple[int, int]:
+    try:
+        cols, rows = (int(x) for x in text.lower().split("x"))
+    except ValueError:
+        raise FormatError(f"--board: expected COLSxROWS inner corners such as 9x6, got {text!r}") from None
+    if cols < 2 or rows < 2:
+        raise FormatError(f"--board: a chessboard has at least 2x2 inner corners, got {text!r}")
+    return cols, rows
+
+
+def _cmd_omni(args) -> int:
+    from ._calibrate import calibrate, to_calibration
+    from ._omni import omni_observations, plot_residuals
+    from ._staged import CalibrationError
+
+    pattern = _board_arg(args.board)
+    if not args.square > 0:
+        raise FormatError(f"--square: must be positive, got {args.square}")
+    shape: dict = {"kind": args.mirror}
+    for key, val in (("vertex_radius", args.vertex_radius), ("conic_constant", args.conic), ("radius", args.rim)):
+        if val is not None:
+            shape[key] = val
+    obs, missing = omni_observations(
+        args.images, pattern, args.square, shape, "telecentric" if args.telecentric else "perspective"
+    )
+    n = len(obs.views)
+    print(f"{n} of {len(args.images)} images show the {pattern[0]}x{pattern[1]} board")
+    if missing:
+        print(f"no board found in: {', '.join(missing)}")
+    if args.observations:
+        write_observations(args.observations, obs)
+        print(f"wrote {args.observations}")
+    t0 = time.perf_counter()
+    try:
+        res = calibrate(obs, loss=args.loss)
+    except CalibrationError as e:
+        raise FormatError(str(e)) from None
+    cal = to_calibration(res, obs)
+    cal.extra["images_without_board"] = missing
+    print_report(cal, f"{n} views through the mirror ({time.perf_counter() - t0:.1f} s)")
+    write_calibration(args.out, cal)
+    print(f"wrote {args.out}")
+    if not args.no_plot:
+        out = Path(args.plot) if args.plot else Path(args.out).with_name(Path(args.out).stem + "_residuals.png")
+        print(f"wrote {plot_residuals(args.images, cal, obs, out)}")
     return 0
 
 
@@ -830,6 +880,28 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--out", required=True, help="output slcv-calibration/1 file (camera only)")
     k.add_argument("--export-opencv", help="also write OpenCV FileStorage YAML")
     k.set_defaults(func=_cmd_camera)
+
+    o = sub.add_parser("omni", help="calibrate a catadioptric camera from chessboard images seen through its mirror")
+    o.add_argument("images", nargs="+")
+    o.add_argument("--board", required=True, help="inner corners COLSxROWS, e.g. 6x8")
+    o.add_argument("--square", type=float, required=True, help="square size in mm")
+    o.add_argument("--out", required=True, help="output slcv-calibration/1 file")
+    o.add_argument(
+        "--mirror",
+        default="hyperboloid",
+        choices=["hyperboloid", "paraboloid", "sphere", "ellipsoid", "auto"],
+        help="the mirror's kind (default hyperboloid: its conic constant estimated unless --conic; "
+        "auto: the kind of the least held-out error, by 5-fold cross-validation over the images)",
+    )
+    o.add_argument("--vertex-radius", type=float, help="the mirror's vertex radius in mm (default: 20, the gauge)")
+    o.add_argument("--conic", type=float, help="the mirror's conic constant, where known")
+    o.add_argument("--rim", type=float, help="the mirror's rim radius in mm, where known")
+    o.add_argument("--telecentric", action="store_true", help="the camera's lens is telecentric (orthographic)")
+    o.add_argument("--loss", default="huber", choices=["huber", "cauchy", "linear"])
+    o.add_argument("--observations", help="also write the detected corners as slcv-observations/1")
+    o.add_argument("--plot", help="the residual plot's PNG (default: OUT's name with _residuals.png)")
+    o.add_argument("--no-plot", action="store_true")
+    o.set_defaults(func=_cmd_omni)
 
     m = sub.add_parser("measure", help="3D laser points (and pipe circles) from spots with a calibration")
     m.add_argument("calibration", help="slcv-calibration/1 file")

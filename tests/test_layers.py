@@ -15,7 +15,7 @@ LAYERS = [
     ("measurement", {"_measure"}),
     ("images", {"_detect", "_pipe", "_render", "_centroids"}),
     ("plots", {"_plots"}),
-    ("experiments", {"_sweep", "_design", "_laser_design"}),
+    ("experiments", {"_sweep", "_design", "_laser_design", "_omni"}),
     ("interfaces", {"cli", "__init__"}),
 ]
 
