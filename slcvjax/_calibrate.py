@@ -33,6 +33,7 @@ import numpy as np
 
 from ._camera import Camera
 from ._central import central_start
+from ._conic import AsphereMirror, ConicMirror
 from ._io import Calibration, Observations, shape_missing
 from ._lasers import Lasers, line_plane_intersection
 from ._lm import (
@@ -385,15 +386,29 @@ def _through_the_mirror(obs: Observations, freeze, loss, loss_scale, max_steps) 
     estimate = {"shape"} if "conic_constant" in shape_missing(shape) else set()
     if shape["kind"] == "sphere":  # its vertex slides over it with its axis: only its centre is seen
         freeze = set(freeze) | {"mirror_tilt"}
+    kind = shape["kind"]
+    if kind == "asphere":  # started as its conic, then given its polynomial terms
+        kind = ConicMirror.create([0, 0, 1], [0, 0, 1], 1.0 / shape["vertex_radius"], shape["conic_constant"], 1.0).kind
     starts = central_start(
         pack(obs),
         obs.image_size,
-        shape["kind"],
+        kind,
         shape.get("vertex_radius"),
         shape.get("conic_constant"),
         shape.get("radius"),
         telecentric=obs.camera_projection == "telecentric",
     )
+    if shape["kind"] == "asphere":
+        starts = [
+            (
+                cam,
+                AsphereMirror(
+                    m.apex, m.axis, m.curvature, m.conic, m.radius, jnp.asarray(shape["coefficients"], float)
+                ),
+                rep,
+            )
+            for cam, m, rep in starts
+        ]
     best = None
     for cam, mir, rep in starts:
         res = _calibrate_lockstep(

@@ -25,6 +25,7 @@ path from its image plane ``M_z + |M - P|``.
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from ._camera import view_direction
@@ -245,3 +246,81 @@ def _start(mirror: ConicMirror, target, e1, e2, telecentric: bool = False):
     path = to_camera + jnp.linalg.norm(pts - target, axis=1)
     best = rho[jnp.argmin(path)]
     return jax.lax.stop_gradient(best * jnp.stack([jnp.dot(u, e1), jnp.dot(u, e2)]))
+
+
+ASPHERE_NEWTON = 8  # Newton steps of a ray's intersection from the conic's
+
+
+class AsphereMirror(ConicMirror):
+    """A general smooth mirror of revolution: a conic plus even polynomial terms (an optician's
+    even asphere), for mirrors that are no conic (an equiangular one, say):
+
+        s(rho^2) = c rho^2 / (1 + sqrt(1 - (1 + kappa) c^2 rho^2)) + sum_j a_j rho^(2 j),  j = 2, 3, ...
+
+    ``coefficients`` holds ``a_2, a_3, ...`` (1/mm^3, 1/mm^5, ...).  The projection is the
+    conic's (Newton on the law of reflection over ``M(x, y)``, the start the least optical
+    path); a ray's intersection is Newton's along the ray from the conic's closed form.
+    """
+
+    coefficients: Float[Array, " k"]
+
+    @staticmethod
+    def create(apex, axis, curvature, conic, radius, coefficients=()) -> "AsphereMirror":
+        base = ConicMirror.create(apex, axis, curvature, conic, radius)
+        coefficients = jnp.asarray(coefficients, dtype=float).reshape(-1)
+        m = AsphereMirror(base.apex, base.axis, base.curvature, base.conic, base.radius, coefficients)
+        c, k1 = float(base.curvature), 1.0 + float(base.conic)
+        if k1 * (c * float(base.radius)) ** 2 >= 1.0:
+            raise ValueError(f"a rim of radius {float(base.radius)} mm lies past the asphere's conic's widest circle")
+        rho2 = np.linspace(0.0, float(base.radius) ** 2, 257)
+        if not np.all(np.asarray(m.sag_slope(jnp.asarray(rho2))) > 0.0):
+            raise ValueError("an asphere's sag must grow with the radius up to the rim (its coefficients turn it back)")
+        return m
+
+    @property
+    def kind(self) -> str:
+        return "asphere"
+
+    def sag(self, rho2):
+        poly = jnp.zeros_like(rho2)
+        for a in self.coefficients[::-1]:  # Horner in rho^2, from the highest power
+            poly = (poly + a) * rho2
+        return ConicMirror.sag(self, rho2) + poly * rho2
+
+    def sag_slope(self, rho2):
+        n = self.coefficients.shape[0]
+        slope = jnp.zeros_like(rho2)
+        for j in range(n + 1, 1, -1):  # d/d(rho^2) of a_j rho^(2j) = j a_j rho^(2(j-1))
+            slope = slope * rho2 + j * self.coefficients[j - 2]
+        return ConicMirror.sag_slope(self, rho2) + slope * rho2
+
+    def retract(self, delta):
+        m = ConicMirror.retract(self, delta)
+        return AsphereMirror(m.apex, m.axis, m.curvature, m.conic, m.radius, self.coefficients)
+
+    def intersect(self, origin, direction, rim_margin: float = 0.0):
+        """The conic's intersection, then Newton along the ray on ``s - sag(rho^2) = 0``."""
+        hit = ConicMirror.intersect(self, origin, direction, rim_margin=1.0)
+        a = self.axis
+
+        def gap(t):
+            q = origin + t * direction - self.apex
+            s = jnp.dot(q, a)
+            return s - self.sag(jnp.dot(q, q) - s * s)
+
+        t = hit.t
+        for _ in range(ASPHERE_NEWTON):
+            t = t - safe_div(gap(t), jax.grad(gap)(t))
+        q = origin + t * direction - self.apex
+        s = jnp.dot(q, a)
+        rho2 = jnp.dot(q, q) - s * s
+        r_max = self.radius * (1.0 + rim_margin)
+        valid = (
+            hit.valid
+            & (jnp.abs(gap(t)) < 1e-9)
+            & (t > 1e-12)
+            & (rho2 <= r_max * r_max)
+            & ((1.0 + self.conic) * self.curvature**2 * rho2 < 1.0)
+        )
+        t = jnp.where(valid, t, 0.0)
+        return RayHit(t, origin + t * direction, valid)

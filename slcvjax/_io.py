@@ -207,6 +207,8 @@ def shape_keys(kind: str) -> list[str]:
     """The dimensions a conic mirror of ``kind`` is given by (``auto``: none)."""
     if kind == "auto":
         return []
+    if kind == "asphere":
+        return ["vertex_radius", "radius", "conic_constant", "coefficients"]
     return ["vertex_radius", "radius"] + (["conic_constant"] if kind in ("hyperboloid", "ellipsoid") else [])
 
 
@@ -219,10 +221,11 @@ def read_shape(ctx: "_Ctx", shape: Any, where: str, partial: bool = False) -> tu
     """A mirror's shape (``mirror_shape``, or a calibration's ``mirror``): the rim's radius and
     sag, and the shape (None for a cone).  ``kind``: cone (``radius``, ``height``), sphere or
     paraboloid (``vertex_radius``, ``radius``), hyperboloid or ellipsoid (those and
-    ``conic_constant``).  ``partial`` (observations): a conic mirror's dimensions may be left
-    out, for a calibration from views through the mirror alone (the vertex radius is then the
-    scale's gauge, ``._central.GAUGE_VERTEX_RADIUS``, the conic constant is estimated and the rim
-    bounds nothing); the rim's radius and sag are then 0 where not known."""
+    ``conic_constant``), asphere (those and ``coefficients``).  ``partial`` (observations): a
+    conic mirror's dimensions may be left out, for a calibration from views through the mirror
+    alone (the vertex radius is then the scale's gauge, ``._central.GAUGE_VERTEX_RADIUS``, the
+    conic constant is estimated and the rim bounds nothing); the rim's radius and sag are then 0
+    where not known."""
     from ._mirror import MIRROR_KINDS, mirror_of_shape
 
     kind = ctx.get(shape, "kind", where, str)
@@ -243,7 +246,16 @@ def read_shape(ctx: "_Ctx", shape: Any, where: str, partial: bool = False) -> tu
         if partial and key not in shape:
             continue
         val = ctx.get(shape, key, where)
-        out[key] = ctx.number(val, f"{where}.{key}") if key == "conic_constant" else ctx.positive(val, f"{where}.{key}")
+        if key == "coefficients":
+            if not isinstance(val, list):
+                ctx.fail(f"{where}.{key}", f"expected a list of numbers, got {type(val).__name__}")
+            out[key] = [ctx.number(v, f"{where}.{key}[{i}]") for i, v in enumerate(val)]
+        elif key == "conic_constant":
+            out[key] = ctx.number(val, f"{where}.{key}")
+        else:
+            out[key] = ctx.positive(val, f"{where}.{key}")
+    if kind == "asphere" and shape_missing(out):
+        ctx.fail(f"{where}.{shape_missing(out)[0]}", "an asphere is given by all its dimensions (none is estimated)")
     if shape_missing(out):  # dimensions left out: checked where they are estimated
         return out.get("radius", 0.0), 0.0, out
     try:

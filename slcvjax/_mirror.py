@@ -22,11 +22,12 @@ from typing import NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from ._camera import Camera, in_image, pixel_to_line, project, view_direction
 from ._conic import KINDS as CONIC_KINDS
-from ._conic import ConicMirror
+from ._conic import AsphereMirror, ConicMirror
 from ._newton import newton_implicit, newton_residual_norm
 from ._revolution import RayHit, retract_pose, rim_circle
 from ._safe import orthonormal_basis, safe_div, safe_norm, safe_normalize, safe_sqrt
@@ -77,18 +78,21 @@ class ConeMirror(eqx.Module):
         return rim_circle(self.apex, self.axis, self.height, self.radius, angles)
 
 
-MIRROR_KINDS = ("cone",) + CONIC_KINDS
+MIRROR_KINDS = ("cone",) + CONIC_KINDS + ("asphere",)
 
 
 def shape_json(mirror) -> dict:
     """A mirror's shape as ``mirror_shape`` writes it: ``{"kind": "cone", "radius", "height"}``, or
-    ``{"kind", "vertex_radius", "radius"}`` with ``"conic_constant"`` for a hyperboloid or an ellipsoid."""
+    ``{"kind", "vertex_radius", "radius"}`` with ``"conic_constant"`` for a hyperboloid or an
+    ellipsoid, and ``"coefficients"`` too for an asphere (:class:`._conic.AsphereMirror`)."""
     if isinstance(mirror, ConeMirror):
         return {"kind": "cone", "radius": float(mirror.radius), "height": float(mirror.height)}
     kind = mirror.kind
     out = {"kind": kind, "vertex_radius": 1.0 / float(mirror.curvature), "radius": float(mirror.radius)}
-    if kind in ("hyperboloid", "ellipsoid"):
+    if kind in ("hyperboloid", "ellipsoid", "asphere"):
         out["conic_constant"] = float(mirror.conic)
+    if kind == "asphere":
+        out["coefficients"] = np.asarray(mirror.coefficients, float).tolist()
     return out
 
 
@@ -99,6 +103,12 @@ def mirror_of_shape(shape: dict | None, apex, axis, radius: float | None = None,
         return ConeMirror.create(apex, axis, radius, height)
     if shape["kind"] == "cone":
         return ConeMirror.create(apex, axis, shape["radius"], shape["height"])
+    if shape["kind"] == "asphere":
+        if not shape["vertex_radius"] > 0 or not shape["radius"] > 0:
+            raise ValueError("the vertex radius and the rim radius must be positive")
+        return AsphereMirror.create(
+            apex, axis, 1.0 / shape["vertex_radius"], shape["conic_constant"], shape["radius"], shape["coefficients"]
+        )
     return ConicMirror.of_kind(
         shape["kind"], apex, axis, shape["vertex_radius"], shape["radius"], shape.get("conic_constant")
     )
