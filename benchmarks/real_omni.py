@@ -130,7 +130,7 @@ def run_set(name: str, obs: Observations, reference: dict, cv: bool, model=DEFAU
             train = dataclasses.replace(obs, views=obs.views[:k] + obs.views[k + 1 :])
             held = dataclasses.replace(obs, views=[obs.views[k]])
             r_k = fit(train, model)[0]
-            rms_k, n_k, bad_k = held_out_rms(r_k, held)
+            rms_k, n_k, bad_k = held_out_rms(r_k.rig, held)
             per_image[obs.views[k].name] = {"rms_px": rms_k, "corners": n_k, "invalid": bad_k}
             errs.append((rms_k, n_k))
         total = sum(n for _, n in errs)

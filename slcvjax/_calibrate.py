@@ -301,12 +301,11 @@ AUTO_KINDS = ("hyperboloid", "paraboloid", "sphere")  # a hyperboloid's conic co
 AUTO_FOLDS = 5
 
 
-def held_out_rms(result: "CalibrationResult", held: Observations) -> tuple[float, int, int]:
-    """``(RMS px, observations used, left invalid)`` of views a calibration did not see: its
-    camera and mirror held, the views' poses fitted by plain least squares."""
+def held_out_rms(rig: Rig, held: Observations) -> tuple[float, int, int]:
+    """``(RMS px, observations used, left invalid)`` of views a calibrated rig did not see: its
+    camera and mirror held, the views' poses (and lasers) fitted by plain least squares."""
     from ._mirror import shape_json
 
-    rig = result.rig
     held = dataclasses.replace(held, mirror_shape=shape_json(rig.mirror), camera_projection=rig.camera.projection)
     ev = calibrate(held, camera=rig.camera, mirror=rig.mirror, freeze={"camera", "mirror"}, loss="linear")
     r = report(ev, held)["residuals"]

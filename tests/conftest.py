@@ -24,3 +24,11 @@ def pytest_configure(config):
 @pytest.fixture
 def rng():
     return np.random.default_rng(1234)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_programs():
+    """After each test file, drop the process's compiled programs (they stay in the persistent
+    cache): a worker that runs many files otherwise keeps thousands of executables mapped."""
+    yield
+    jax.clear_caches()
