@@ -338,9 +338,8 @@ def _auto_kind(obs: Observations, freeze, loss, loss_scale, max_steps) -> "Calib
                 train = dataclasses.replace(o_kind, views=[v for i, v in enumerate(obs.views) if i not in fold])
                 held = dataclasses.replace(o_kind, views=[obs.views[i] for i in fold])
                 try:
-                    rms, n_used, n_bad = held_out_rms(
-                        _through_the_mirror(train, freeze, loss, loss_scale, max_steps), held
-                    )
+                    fit = _through_the_mirror(train, freeze, loss, loss_scale, max_steps)
+                    rms, n_used, n_bad = held_out_rms(fit.rig, held)
                 except CalibrationError:
                     sq, used, bad = np.inf, 1, n
                     bar.update(len(folds) - folds.index(fold))
