@@ -33,7 +33,7 @@ import numpy as np
 
 from ._camera import Camera
 from ._central import central_start
-from ._conic import AsphereMirror, ConicMirror
+from ._conic import AsphereMirror, conic_kind
 from ._io import Calibration, Observations, shape_missing
 from ._lasers import Lasers, line_plane_intersection
 from ._lm import (
@@ -386,7 +386,7 @@ def _through_the_mirror(obs: Observations, freeze, loss, loss_scale, max_steps) 
         freeze = set(freeze) | {"mirror_tilt"}
     kind = shape["kind"]
     if kind == "asphere":  # started as its conic, then given its polynomial terms
-        kind = ConicMirror.create([0, 0, 1], [0, 0, 1], 1.0 / shape["vertex_radius"], shape["conic_constant"], 1.0).kind
+        kind = conic_kind(shape["conic_constant"])
     starts = central_start(
         pack(obs),
         obs.image_size,

@@ -157,14 +157,9 @@ def pixel_to_line(cam: Camera, uv: Float[Array, "2"]) -> tuple[Float[Array, "3"]
     return jnp.zeros(3), d, valid
 
 
-def viewing_direction(cam: Camera, x: Float[Array, "3"]) -> Float[Array, "3"]:
+def view_direction(x: Float[Array, "3"], telecentric: bool) -> Float[Array, "3"]:
     """The unit direction from the camera to a point it sees at ``x`` (camera frame): +z for a
     telecentric camera."""
-    return view_direction(x, cam.telecentric)
-
-
-def view_direction(x: Float[Array, "3"], telecentric: bool) -> Float[Array, "3"]:
-    """:func:`viewing_direction` by the camera's kind alone."""
     return jnp.array([0.0, 0.0, 1.0]) if telecentric else safe_normalize(x)
 
 

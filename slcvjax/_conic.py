@@ -37,6 +37,16 @@ KINDS = ("sphere", "paraboloid", "hyperboloid", "ellipsoid")
 START_SAMPLES = 24  # points of the axial half-plane the projection's start is chosen from
 
 
+def conic_kind(conic: float) -> str:
+    """The kind a conic constant makes: ``sphere`` (0), ``paraboloid`` (-1), ``hyperboloid``
+    (below -1) or ``ellipsoid``."""
+    if conic == 0.0:
+        return "sphere"
+    if conic == -1.0:
+        return "paraboloid"
+    return "hyperboloid" if conic < -1.0 else "ellipsoid"
+
+
 class ConicMirror(eqx.Module):
     """A conic mirror of revolution (see the module docstring), convex side to the camera.
 
@@ -95,12 +105,7 @@ class ConicMirror(eqx.Module):
     @property
     def kind(self) -> str:
         """``sphere``, ``paraboloid``, ``hyperboloid`` or ``ellipsoid`` (host values only)."""
-        k = float(self.conic)
-        if k == 0.0:
-            return "sphere"
-        if k == -1.0:
-            return "paraboloid"
-        return "hyperboloid" if k < -1.0 else "ellipsoid"
+        return conic_kind(float(self.conic))
 
     def sag(self, rho2: Float[Array, "..."]) -> Float[Array, "..."]:
         """The axial coordinate ``s`` of the surface at squared radius ``rho2``."""
