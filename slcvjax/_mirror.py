@@ -276,7 +276,7 @@ class MirrorProjection(NamedTuple):
 def solve_mirror_point(
     mirror: ConeMirror,
     p_cam: Float[Array, "3"],
-    iters: int = 10,
+    iters: int = 6,
     implicit: bool = True,
     rim_margin: float = 0.0,
     apex_margin: float = 0.0,
@@ -344,7 +344,7 @@ def project_through_mirror(
     cam: Camera,
     mirror: ConeMirror,
     p_cam: Float[Array, "3"],
-    iters: int = 10,
+    iters: int = 6,
     implicit: bool = True,
     rim_margin: float = 0.0,
     apex_margin: float = 0.0,
