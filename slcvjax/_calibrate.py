@@ -39,6 +39,7 @@ from ._lasers import Lasers, line_plane_intersection
 from ._lm import (
     CONVERGED,
     KIND_NAMES,
+    MAX_STEPS,
     RESULT_NAMES,
     Covariance,
     LMResult,
@@ -108,6 +109,12 @@ def _solve(params: Params, arr: Packed, masks: Masks, loss: str, scale, max_step
 _RTOL_START = 1e-5
 _RTOL_TWIN = 1e-4
 _RTOL_FINAL = 1e-10
+# the step limit of passes A and A2: where a board is flipped wrong, they creep (measured: A took
+# 20-43 steps in four of nine 9-15-view scenes and A2 10-15 in six, most of them rejected or
+# lowering the cost by a few per cent); with this limit the same boards turned, the same passes
+# ran and the solutions agreed to 3e-4 in the camera, mirror and beam directions and to 0.012 mm
+# in the beams (benchmarks/bench_compile.py's scenes); the next pass goes on from there
+_STEPS_A = 10
 _covariance_of_linearisation = jax.jit(covariance_of_linearisation)
 _block_costs_jit = jax.jit(block_costs, static_argnames=("n_blocks",))
 
@@ -187,7 +194,8 @@ def _robust_sigma_of(norm, kind, ok) -> float:
 @dataclass
 class JointPass:
     """One LM pass: its name, steps, result (``._lm.RESULT_NAMES`` and what followed it), costs,
-    loss scale, and its result code (``code``, ``._lm.CONVERGED`` ...)."""
+    loss scale, its result code (``code``, ``._lm.CONVERGED`` ...) and the step limit the
+    schedule gives it where that is below the calibration's (``limit``: passes A and A2)."""
 
     name: str
     steps: int
@@ -196,10 +204,17 @@ class JointPass:
     cost: float
     scale: float
     code: int
+    limit: int | None = None
 
     @property
     def converged(self) -> bool:
         return self.code == CONVERGED
+
+    @property
+    def finished(self) -> bool:
+        """Converged, or stopped at the step limit the schedule gives the pass (it only has to
+        bring the next pass into its basin)."""
+        return self.converged or (self.code == MAX_STEPS and self.limit is not None and self.steps >= self.limit)
 
 
 @dataclass
@@ -222,6 +237,12 @@ class CalibrationResult:
     @property
     def rig(self) -> Rig:
         return self.params.rig
+
+    @property
+    def converged(self) -> bool:
+        """Whether the last pass, the one whose solution this is, converged (not stopped at the
+        step limit or stalled): only then are ``params`` a minimum and ``cov`` its covariance."""
+        return bool(self.passes) and self.passes[-1].converged
 
 
 def _chess_start(obs: Observations, pk: Packed, cam: Camera, known: dict[int, Pose]) -> list[Pose]:
@@ -635,26 +656,31 @@ def _calibrate_lockstep(
     ]
     size = len(trials)
 
-    def run(name, chosen, lasers_held, scale, kind_weight=None, rtol=_RTOL_START, pass_loss=None):
+    def run(name, chosen, lasers_held, scale, kind_weight=None, rtol=_RTOL_START, pass_loss=None, steps=None):
         """One LM pass of the ``chosen`` trials from where they are; ``scale(trial)``: its loss
-        scale; ``pass_loss``: a loss for this pass instead of the calibration's."""
+        scale; ``pass_loss``: a loss for this pass instead of the calibration's; ``steps``: a
+        step limit below the calibration's."""
         for i in chosen:
             trials[i].scale = scale(trials[i])
         jobs = [
             _job(tr, tr.params, tr.mask_a if lasers_held else tr.masks, kind_weight, rtol)
             for tr in (trials[i] for i in chosen)
         ]
-        for i, res in zip(chosen, solver(jobs, pass_loss or loss, max_steps, size=size), strict=True):
+        own = steps if steps is not None and steps < max_steps else None  # the pass's own limit
+        for i, res in zip(chosen, solver(jobs, pass_loss or loss, own or max_steps, size=size), strict=True):
             tr = trials[i]
+            code = int(res.result)
+            capped = own is not None and code == MAX_STEPS
             tr.passes.append(
                 JointPass(
                     name,
                     int(res.steps),
-                    RESULT_NAMES[int(res.result)],
+                    f"stopped at its limit of {own} steps" if capped else RESULT_NAMES[code],
                     float(res.initial_cost),
                     float(res.cost),
                     float(tr.scale),
-                    int(res.result),
+                    code,
+                    own,
                 )
             )
             tr.params = unpad_params(tr.layout, res.params)
@@ -668,7 +694,7 @@ def _calibrate_lockstep(
 
     # A: geometry without the lasers, only far enough to decide the boards' flips again
     rtol_a = _RTOL_TWIN if "poses" not in freeze else _RTOL_START
-    run("A: camera, mirror, poses", every, True, robust_scale(0.1), [1.0, 0.0, 1.0, 1.0], rtol_a)
+    run("A: camera, mirror, poses", every, True, robust_scale(0.1), [1.0, 0.0, 1.0, 1.0], rtol_a, steps=_STEPS_A)
     # the boards' flips decided again on the refined geometry, then A once more where any
     # board turned (otherwise pass A's poses already fit the dots on this geometry)
     if "poses" not in freeze:
@@ -680,7 +706,7 @@ def _calibrate_lockstep(
                 tr.params = Params(p.rig, poses, p.chess)
                 again.append(i)
         if again:
-            run("A2: after re-flipping", again, True, robust_scale(0.1), [1.0, 0.0, 1.0, 1.0])
+            run("A2: after re-flipping", again, True, robust_scale(0.1), [1.0, 0.0, 1.0, 1.0], steps=_STEPS_A)
 
     def other_starts(chosen, turned_only: bool, pass_loss=None) -> list[int]:
         """Each board pose of the ``chosen`` trials swapped for its flipped twin, or for its pose
@@ -1521,7 +1547,17 @@ def report(result: CalibrationResult, obs: Observations) -> dict:
     sd = std_of_variance(np.diag(cov))
     x_ref = laser_working_points(result.rig, result.params.poses, result.packed)
     pos, ang = laser_std(result.rig, cov, x_ref)
+    last = result.passes[-1] if result.passes else None
     uncertainty = {
+        "converged": result.converged,
+        **(
+            {}
+            if result.converged or last is None
+            else {
+                "status": f"not a minimum: the last pass ({last.name}) {last.result} after {last.steps} steps; "
+                "the std below are those of the point where it stopped"
+            }
+        ),
         "sigma_px": sigma,
         "camera_std": dict(
             zip(["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"], _finite_or_none(sd[:9]), strict=True)

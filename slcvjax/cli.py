@@ -299,6 +299,8 @@ def print_report(cal, name: str = "") -> None:
             print("mirror kind " + "; ".join(st["notes"]))
     if cal.rig.camera.telecentric:
         print(f"camera     telecentric (fx, fy in px per {cal.rig.camera.unit:g} mm; its depth is the gauge, held)")
+    if not unc.get("converged", True):
+        print(f"WARNING    {unc['status']}")
     cs = unc["camera_std"]
     print(f"camera std fx {_fmt(cs['fx'])} fy {_fmt(cs['fy'])} cx {_fmt(cs['cx'])} cy {_fmt(cs['cy'])} px")
     ms = unc["mirror_std"]

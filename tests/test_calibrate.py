@@ -19,6 +19,7 @@ from slcvjax._calibrate import (
     covariance_of,
     cramer_rao,
     laser_errors,
+    report,
     to_calibration,
 )
 from slcvjax._io import observations_to_json, read_calibration, write_observations
@@ -112,7 +113,11 @@ def test_joint_lowers_the_cost_converges_and_estimates_sigma(scene):
     res = calibrate(obs)
     for p in res.passes:
         assert p.cost <= p.cost0 + 1e-9
-    assert res.passes[-1].converged
+        assert p.finished, (p.name, p.result)
+        if not p.converged:  # only a pass the schedule limits stops short, and says so
+            assert p.limit is not None and p.steps == p.limit and "limit" in p.result, (p.name, p.result)
+    assert res.passes[-1].converged and res.passes[-1].limit is None
+    assert res.converged and report(res, obs)["uncertainty"]["converged"]
     assert float(res.cov.sigma) == pytest.approx(0.5, rel=0.15)
     # the joint result is better than the staged one at the lasers
     x_ref = np.asarray(truth.rig.lasers.points)
@@ -266,6 +271,19 @@ def test_a_laser_without_enough_spots_is_named(scene):
         v.spots = [s for s in v.spots if s.laser != 2]
     with pytest.raises(CalibrationError, match="laser 2"):
         calibrate(obs)
+
+
+def test_a_calibration_stopped_short_says_it_is_not_a_minimum(scene, capsys):
+    """Three LM steps per pass cannot reach the minimum from the staged start: the result, the
+    report and the printed report say the solution is not a minimum."""
+    obs, _ = simulate(scene, noise=0.5, seed=3)
+    res = calibrate(obs, max_steps=3)
+    assert not res.converged and res.passes[-1].code == _lm.MAX_STEPS
+    cal = to_calibration(res, obs)
+    unc = cal.extra["uncertainty"]
+    assert unc["converged"] is False and "not a minimum" in unc["status"] and "3 steps" in unc["status"]
+    cli.print_report(cal)
+    assert "WARNING    not a minimum" in capsys.readouterr().out
 
 
 def test_cli_calibrate_writes_a_calibration(tmp_path, scene, capsys):

