@@ -92,7 +92,9 @@ def part(name: str, files: list[Path]) -> dict:
             "buckets": list(lay.cap),
             "seconds": wall,
             "compile_seconds": {k: totals[k] - before[k] for k in totals},
-            "converged": res.passes[-1].converged,
+            "converged": res.converged,
+            "lm_steps": sum(p.steps for p in res.passes),
+            "passes": [[p.name.split(":")[0], p.steps] for p in res.passes],
         }
 
     out: dict = {"import_seconds": t_import}
