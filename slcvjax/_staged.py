@@ -437,6 +437,41 @@ def _line_through(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return centre, (-d if d @ centre < 0 else d)
 
 
+def _spot_points(camera: Camera, mirror: ConeMirror, pk: Packed, poses: list[Pose]):
+    """Each spot's point where its reflected ray meets its board's plane (camera frame, mm),
+    whether that is usable (a valid ray, the board ahead of the mirror along it), and the rays'
+    origins, directions and pixel metrics with the boards' normals and origins per spot."""
+    rays, metric = map_padded(_rays_with_pixel_metric, camera, mirror, rows=pk.spot_pixels)
+    org, dirs, ok = np.asarray(rays.point), np.asarray(rays.direction), np.asarray(rays.valid)
+    metric = np.asarray(metric)
+    pose_of = np.asarray(pk.spot_pose)[: org.shape[0]]
+    normals = np.array([np.asarray(p.R)[:, 2] for p in poses]).reshape(-1, 3)[pose_of]
+    origins = np.array([np.asarray(p.t) for p in poses]).reshape(-1, 3)[pose_of]
+    den = np.sum(normals * dirs, axis=1)
+    lam = np.sum(normals * (origins - org), axis=1) / np.where(np.abs(den) < 1e-9, np.nan, den)
+    # the board must lie ahead of the mirror along the reflected ray
+    usable = ok & np.isfinite(lam) & (lam > 0)
+    pts = org + np.where(usable, lam, 0.0)[:, None] * dirs
+    return pts, usable, (org, dirs, metric, normals, origins)
+
+
+def aimed_lasers(camera: Camera, mirror: ConeMirror, pk: Packed, poses: list[Pose], lasers: Lasers) -> Lasers:
+    """``lasers`` with each line that has spots replaced by the line from the camera's centre
+    through the centroid of its spots' points on their boards: another start for a laser whose
+    spots lie along a short stretch of its line (aimed where the range hardly changes from view to
+    view), whose direction the points alone do not fix."""
+    pts, usable, _ = _spot_points(camera, mirror, pk, poses)
+    laser_of = np.asarray(pk.spot_laser)[: pts.shape[0]]
+    points, directions = np.array(lasers.points), np.array(lasers.directions)
+    for i in range(lasers.n):
+        sel = usable & (laser_of == i)
+        if sel.any():
+            c = pts[sel].mean(axis=0)
+            if np.linalg.norm(c) > 1e-6:
+                points[i], directions[i] = c, c / np.linalg.norm(c)
+    return Lasers.create(points, directions).canonical()
+
+
 def fit_lasers(
     camera: Camera, mirror: ConeMirror, pk: Packed, poses: list[Pose], n_lasers: int, repair: bool = True
 ) -> LaserFit:
@@ -461,18 +496,8 @@ def fit_lasers(
         none = Lasers.create(np.zeros((0, 3)), np.zeros((0, 3)))
         report = StageReport("lasers", float("nan"), "px", ["no lasers"])
         return LaserFit(none, report, np.full(n_s, -1), np.zeros((n_s, 0)), float("inf"))
-    rays, metric = map_padded(_rays_with_pixel_metric, camera, mirror, rows=pk.spot_pixels)
-    org, dirs, ok = np.asarray(rays.point), np.asarray(rays.direction), np.asarray(rays.valid)
-    metric = np.asarray(metric)
+    pts, usable, (org, dirs, metric, normals, origins) = _spot_points(camera, mirror, pk, poses)
     own = np.asarray(pk.spot_laser)[: org.shape[0]]
-    pose_of = np.asarray(pk.spot_pose)[: org.shape[0]]
-    normals = np.array([np.asarray(p.R)[:, 2] for p in poses]).reshape(-1, 3)[pose_of]
-    origins = np.array([np.asarray(p.t) for p in poses]).reshape(-1, 3)[pose_of]
-    den = np.sum(normals * dirs, axis=1)
-    lam = np.sum(normals * (origins - org), axis=1) / np.where(np.abs(den) < 1e-9, np.nan, den)
-    # the board must lie ahead of the mirror along the reflected ray
-    usable = ok & np.isfinite(lam) & (lam > 0)
-    pts = org + np.where(usable, lam, 0.0)[:, None] * dirs
 
     def residuals(points, directions):
         return spot_line_residuals(org, dirs, metric, normals, origins, points, directions)
