@@ -58,7 +58,18 @@ from ._lm import (
 from ._persist import PersistentJit
 from ._pose import Pose
 from ._problem import Layout, Packed, pack, stack_poses, unstack_poses
-from ._rig import SHAPE_COLUMN, Rig, laser_columns, project_board_points, project_rim, project_spots
+from ._rig import (
+    APEX_COLUMNS,
+    CAMERA_COLUMNS,
+    CAMERA_NAMES,
+    SHAPE_COLUMN,
+    TILT_COLUMNS,
+    Rig,
+    laser_columns,
+    project_board_points,
+    project_rim,
+    project_spots,
+)
 from ._rigid import (
     MISFIT_MIN_PX,
     MISFIT_ROUNDS,
@@ -1605,10 +1616,11 @@ def report(result: CalibrationResult, obs: Observations) -> dict:
             }
         ),
         "sigma_px": sigma,
-        "camera_std": dict(
-            zip(["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"], _finite_or_none(sd[:9]), strict=True)
-        ),
-        "mirror_std": {"apex_mm": _finite_or_none(sd[9:12]), "axis_tilt_deg": _finite_or_none(np.degrees(sd[12:14]))}
+        "camera_std": dict(zip(CAMERA_NAMES, _finite_or_none(sd[CAMERA_COLUMNS]), strict=True)),
+        "mirror_std": {
+            "apex_mm": _finite_or_none(sd[APEX_COLUMNS]),
+            "axis_tilt_deg": _finite_or_none(np.degrees(sd[TILT_COLUMNS])),
+        }
         | ({"conic_constant": _finite_or_none(sd[SHAPE_COLUMN])} if float(result.masks.glob[SHAPE_COLUMN]) else {}),
         "lasers": [
             {

@@ -12,7 +12,14 @@ from ._pose import Pose
 CAMERA_DOF = 9
 MIRROR_DOF = 6  # the pose (vertex 3, axis tilt 2) and one of the shape (see the mirrors' retract)
 LASER_DOF = 4
-SHAPE_COLUMN = CAMERA_DOF + MIRROR_DOF - 1  # the mirror's shape (a conic's constant) in the rig's tangent
+# the rig's tangent, column by column (:meth:`Rig.retract`'s order; the calibration's covariance
+# and every Jacobian over the rig): the camera (fx, fy, cx, cy, then the distortion, ``_io``'s
+# order), the mirror's vertex (mm), its axis tilt (rad), its shape, then the lasers (laser_columns)
+CAMERA_COLUMNS = slice(0, CAMERA_DOF)
+CAMERA_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+APEX_COLUMNS = slice(CAMERA_DOF, CAMERA_DOF + 3)
+TILT_COLUMNS = slice(CAMERA_DOF + 3, CAMERA_DOF + 5)
+SHAPE_COLUMN = CAMERA_DOF + MIRROR_DOF - 1  # the mirror's shape (a conic's constant)
 POSE_DOF = 6
 
 
