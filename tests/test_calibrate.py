@@ -94,6 +94,7 @@ def test_aimed_lasers_pass_through_their_spots_centroid_from_the_camera_centre(e
         assert np.linalg.norm(np.cross(ap[i], ad[i])) < 1e-9  # through the camera's centre
 
 
+@pytest.mark.slow
 def test_a_laser_whose_spots_span_a_few_mm_is_not_left_along_its_boards():
     """The preset at 0.9 px, seed 12: laser 6 meets the walls between 137 and 150 mm along its line
     in every view, and B took it into a line nearly along the walls (82 degrees off, its
