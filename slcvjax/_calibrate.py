@@ -775,6 +775,8 @@ def _calibrate_lockstep(
         jobs = [_job(trials[i], st, trials[i].masks, None, _RTOL_START) for i, st in zip(picked, starts, strict=True)]
         now = [_job(trials[i], trials[i].params, trials[i].masks, None, _RTOL_START) for i in picked]
         solved = solver(jobs, loss, max_steps, size=size)
+        # B's own final cost held the rim rows' normalisation of B's start: the cost at B's
+        # solution is taken again with the one the aimed solve started from (the same rig)
         current = solver(now, loss, 0, size=size)
         for i, res, cur in zip(picked, solved, current, strict=True):
             tr = trials[i]
@@ -1637,7 +1639,7 @@ def report(result: CalibrationResult, obs: Observations) -> dict:
             for i in range(result.rig.lasers.n)
         ],
         "covariance": {
-            "parameters": "camera (fx, fy, cx, cy, k1, k2, p1, p2, k3), mirror (apex dx, dy, dz mm; axis tilt "
+            "parameters": f"camera ({', '.join(CAMERA_NAMES)}), mirror (apex dx, dy, dz mm; axis tilt "
             "e1, e2 rad; conic constant, 0 where the shape is given), then per laser (point offset e1, e2 mm; "
             "direction tilt e1, e2 rad) with (e1, e2) the orthonormal basis of slcvjax._safe.orthonormal_basis "
             "about the axis / laser direction",
