@@ -16,9 +16,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from slcvjax._calibrate import calibrate, cramer_rao, laser_errors, report
-from slcvjax._rig import Rig
-from slcvjax._simulate import make_scene, simulate
+from slcvjax import Rig, calibrate, cramer_rao, laser_errors, make_scene, report, simulate
 
 
 def main() -> None:

@@ -30,10 +30,9 @@ import numpy as np
 from bench_forward import machine
 from scipy.optimize import least_squares
 
-from slcvjax import _lm
-from slcvjax._calibrate import calibrate, calibrate_many
-from slcvjax._problem import pack, stack_poses
-from slcvjax._simulate import make_scene, simulate
+from slcvjax import calibrate, calibrate_many, make_scene, simulate
+from slcvjax.calibration import lm as _lm
+from slcvjax.observations.problem import pack, stack_poses
 
 
 def problem(n_views: int, seed: int = 1):

@@ -42,7 +42,8 @@ def scene(n_lasers: int, n_views: int, seed: int):
     """The rig with ``n_lasers`` lasers at ``n_views`` sensor poses drawn from ``seed`` within the preset's range."""
     import numpy as np
 
-    from slcvjax._simulate import PAPER_ROTATION_DEG, PAPER_TRANSLATION_MM, box_scene, paper_rig
+    from slcvjax import box_scene, paper_rig
+    from slcvjax.observations.simulate import PAPER_ROTATION_DEG, PAPER_TRANSLATION_MM
 
     rng = np.random.default_rng(seed)
     views = np.zeros((n_views, 6))
@@ -74,7 +75,7 @@ def part(name: str, files: list[Path]) -> dict:
     """One process's part of the benchmark (see the module docstring)."""
     totals = _compile_seconds()
     import slcvjax as sj
-    from slcvjax._problem import Layout, pack
+    from slcvjax.observations.problem import Layout, pack
 
     t_import = time.perf_counter() - T_START
 
@@ -114,8 +115,8 @@ def padding_cost(path: Path) -> dict:
     import jax.numpy as jnp
 
     import slcvjax as sj
-    from slcvjax import _lm
-    from slcvjax._problem import Layout
+    from slcvjax.calibration import lm as _lm
+    from slcvjax.observations.problem import Layout
 
     res = sj.calibrate(sj.read_observations(path))
     lay = Layout.of(res.packed)
@@ -182,8 +183,7 @@ def main() -> None:
         return
     views = [int(v) for v in args.views.split(",")]
     with tempfile.TemporaryDirectory(prefix="slcvjax-bench-") as tmp:
-        from slcvjax._io import write_observations
-        from slcvjax._simulate import simulate
+        from slcvjax import simulate, write_observations
 
         files = []
         for i, n_v in enumerate(views + [args.unseen_views]):

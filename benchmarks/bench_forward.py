@@ -26,9 +26,8 @@ import jax.numpy as jnp
 import numpy as np
 
 import slcvjax as sj
-from slcvjax._pose import Pose
-from slcvjax._problem import dot_residuals, pack, spot_residuals, stack_poses
-from slcvjax._simulate import make_scene, simulate
+from slcvjax import Pose, make_scene, simulate
+from slcvjax.observations.problem import dot_residuals, pack, spot_residuals, stack_poses
 
 
 def timed(fn, *args, repeats: int = 5) -> dict:

@@ -15,8 +15,8 @@ import time
 from pathlib import Path
 
 import slcvjax  # noqa: F401  (float64)
-from slcvjax._render import Renderer, RenderOptions
-from slcvjax._simulate import make_scene, visible_spots
+from slcvjax import Renderer, RenderOptions, make_scene
+from slcvjax.observations.simulate import visible_spots
 
 
 def _median_time(f, repeats):

@@ -29,10 +29,9 @@ import jax.numpy as jnp
 import numpy as np
 from bench_forward import machine
 
-from slcvjax import _lm
-from slcvjax._calibrate import calibrate_many
-from slcvjax._problem import pack, stack_poses
-from slcvjax._simulate import make_scene, simulate
+from slcvjax import calibrate_many, make_scene, simulate
+from slcvjax.calibration import lm as _lm
+from slcvjax.observations.problem import pack, stack_poses
 
 
 def trials(n: int):

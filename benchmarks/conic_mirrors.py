@@ -20,10 +20,7 @@ import numpy as np
 from bench_forward import machine
 from tqdm import tqdm
 
-from slcvjax._calibrate import calibrate, cramer_rao, laser_errors
-from slcvjax._conic import ConicMirror
-from slcvjax._rig import Rig
-from slcvjax._simulate import box_scene, paper_rig, paper_views, simulate
+from slcvjax import ConicMirror, Rig, box_scene, calibrate, cramer_rao, laser_errors, paper_rig, paper_views, simulate
 
 # (kind, vertex radius mm, conic constant)
 MIRRORS = [("sphere", 30.0, None), ("paraboloid", 20.0, None), ("hyperboloid", 15.0, -2.0), ("ellipsoid", 30.0, -0.5)]

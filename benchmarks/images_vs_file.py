@@ -5,7 +5,7 @@ Run: ``python benchmarks/images_vs_file.py [--seeds 6] [--image-noise 1.0] [--ou
 For each seed the paper preset is rendered with sensor noise (``--image-noise`` grey levels,
 the seed's own noise), detected and calibrated ("images", as ``slcvjax calibrate`` does: the
 targets the detector left out placed by the box's other walls,
-:func:`slcvjax._centroids.calibrate_detected`).  The detection's errors are
+:func:`slcvjax.images.centroids.calibrate_detected`).  The detection's errors are
 measured against the simulator's exact projections: sigma of the dots and spots, of the rim
 pixels (their distance to the true rim curve) and of the chessboard corners.  The same
 detection calibrated again from its centroids corrected for the mirror's distortion of each
@@ -35,13 +35,20 @@ import numpy as np
 from bench_forward import machine
 from tqdm import tqdm
 
-from slcvjax._calibrate import calibrate, cramer_rao, laser_errors
-from slcvjax._centroids import calibrate_detected
-from slcvjax._detect import detect_folder
-from slcvjax._io import SpotObs, ViewObs
-from slcvjax._render import RenderOptions, render_scene
-from slcvjax._rig import project_rim
-from slcvjax._simulate import make_scene, simulate
+from slcvjax import (
+    RenderOptions,
+    SpotObs,
+    ViewObs,
+    calibrate,
+    calibrate_detected,
+    cramer_rao,
+    detect_folder,
+    laser_errors,
+    make_scene,
+    project_rim,
+    render_scene,
+    simulate,
+)
 
 
 def _nearest(points: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -4,8 +4,8 @@ Run: ``python benchmarks/laser_design.py [--trials 60] [--diameters 100,150,200,
 [--out FILE]``.
 
 Designs the preset's lasers (each beam's elevation, the ring's radius and height) for the
-pipes (:func:`slcvjax._laser_design.optimise_lasers`, the preset's 16 box views at 0.5 px), then
-confirms both mountings by simulation (:func:`slcvjax._laser_design.confirm_lasers`: ``trials``
+pipes (:func:`slcvjax.experiments.laser_design.optimise_lasers`, the preset's 16 box views at 0.5 px), then
+confirms both mountings by simulation (:func:`slcvjax.experiments.laser_design.confirm_lasers`: ``trials``
 box calibrations each, every calibration measuring every pipe with the sensor on its axis).
 Reported per pipe and mounting: the predicted diameter std, the Monte Carlo RMS diameter error
 and their ratio (the ratio's sampling error is about ``1 / sqrt(2 trials)``), the spots seen
@@ -20,9 +20,16 @@ from pathlib import Path
 import numpy as np
 from bench_forward import machine
 
-from slcvjax._design import Plan
-from slcvjax._laser_design import MeasurePlan, confirm_lasers, laser_design_document, optimise_lasers
-from slcvjax._simulate import box_scene, paper_rig, paper_views
+from slcvjax import (
+    MeasurePlan,
+    Plan,
+    box_scene,
+    confirm_lasers,
+    laser_design_document,
+    optimise_lasers,
+    paper_rig,
+    paper_views,
+)
 
 
 def main() -> None:

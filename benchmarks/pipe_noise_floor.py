@@ -22,9 +22,7 @@ from pathlib import Path
 import numpy as np
 from bench_forward import machine
 
-from slcvjax._calibrate import calibrate, to_calibration
-from slcvjax._pipe import measurement_inputs, pipe_experiment, pipe_scene
-from slcvjax._simulate import paper_scene, simulate
+from slcvjax import calibrate, measurement_inputs, paper_scene, pipe_experiment, pipe_scene, simulate, to_calibration
 
 
 def measure(rig, rig_cov, scene, noise: float, seeds) -> dict:

@@ -8,7 +8,7 @@ the project): OCamCalib's VMRImage and MiniOmni samples with the corners of its 
 the corners ``slcvjax omni`` detects in its images (OpenCV's chessboard detector and corner
 refiner, as OpenCV omnidir's reference run; the corner file that comes with the set disagrees
 with the images in three views, see ``mei_corner_file_check`` in the JSON).  Each set is
-calibrated as a user without a datasheet would: the central start (:mod:`slcvjax._central`: a
+calibrated as a user without a datasheet would: the central start (:mod:`slcvjax.calibration.central`: a
 hyperboloid, vertex radius 20 mm as the scale's gauge), then the joint non-central fit of camera
 (pinhole, five distortion terms), mirror pose and board poses under the plain least-squares
 loss (``loss="linear"``, every corner kept, as the published fits).  Mei's set is also fitted as
@@ -17,7 +17,7 @@ what its name says, a paraboloid before a telecentric lens, and with ``mirror_sh
 
 Reports per set and method:
 - train RMS (``sqrt(mean |e|^2)`` over every corner) beside OCamCalib's published ``rms_px``,
-  reproduced here from its model and extrinsics (``slcvjax._published.ocam_project``);
+  reproduced here from its model and extrinsics (``slcvjax.observations.published.ocam_project``);
 - held-out RMS by leave-one-image-out cross-validation: the rig fitted (central start
   included) without the image, then camera and mirror held and only the image's board pose
   fitted; beside OCamCalib's model on the same images (which saw them all);
@@ -41,11 +41,17 @@ import numpy as np
 from bench_forward import machine
 from tqdm import tqdm
 
-from slcvjax._calibrate import calibrate, held_out_rms, report
-from slcvjax._io import Observations
-from slcvjax._mirror import back_project
-from slcvjax._omni import omni_observations
-from slcvjax._published import mei_observations, ocam_observations, ocam_residuals
+from slcvjax import (
+    Observations,
+    back_project,
+    calibrate,
+    held_out_rms,
+    mei_observations,
+    ocam_observations,
+    ocam_residuals,
+    omni_observations,
+    report,
+)
 
 HERE = Path(__file__).resolve().parent
 OCAM_SETS = {"VMRImage": "ocamcalib_vmrimage_catadioptric", "MiniOmni": "ocamcalib_miniomni_catadioptric"}

@@ -20,9 +20,8 @@ import numpy as np
 from bench_forward import machine
 from tqdm import tqdm
 
-from slcvjax._calibrate import calibrate, cramer_rao, laser_errors
-from slcvjax._problem import unstack_poses
-from slcvjax._simulate import box_scene, paper_rig, paper_views, simulate
+from slcvjax import box_scene, calibrate, cramer_rao, laser_errors, paper_rig, paper_views, simulate
+from slcvjax.observations.problem import unstack_poses
 
 
 def rms(x) -> float:

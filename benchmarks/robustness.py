@@ -39,9 +39,17 @@ from pathlib import Path
 import numpy as np
 from bench_forward import machine
 
-from slcvjax._calibrate import calibrate, cramer_rao, laser_errors, laser_std, laser_working_points, report
-from slcvjax._simulate import make_scene, simulate
-from slcvjax._staged import CalibrationError
+from slcvjax import (
+    CalibrationError,
+    calibrate,
+    cramer_rao,
+    laser_errors,
+    laser_std,
+    laser_working_points,
+    make_scene,
+    report,
+    simulate,
+)
 
 RIGS = {"paper_10x16": (10, 16), "lasers8_views12": (8, 12)}
 

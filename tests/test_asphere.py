@@ -7,9 +7,9 @@ import jax
 import numpy as np
 import pytest
 
-from slcvjax._conic import AsphereMirror, ConicMirror
-from slcvjax._mirror import back_project, project_through_mirror
-from slcvjax._simulate import paper_camera
+from slcvjax.geometry.conic import AsphereMirror, ConicMirror
+from slcvjax.geometry.mirror import back_project, project_through_mirror
+from slcvjax.observations.simulate import paper_camera
 
 APEX, AXIS = [0.6, -0.4, 48.0], [0.02, -0.015, 1.0]
 COEFFS = [1.5e-5, -2e-8]  # rho^4, rho^6 (1/mm^3, 1/mm^5)
@@ -94,9 +94,9 @@ def test_an_asphere_reflects_by_its_profile():
 def test_an_asphere_is_checked_and_kept_in_files(tmp_path):
     import json
 
-    from slcvjax._io import Calibration, FormatError, read_calibration, write_calibration
-    from slcvjax._lasers import Lasers
-    from slcvjax._rig import Rig
+    from slcvjax.geometry.lasers import Lasers
+    from slcvjax.geometry.rig import Rig
+    from slcvjax.observations.formats import Calibration, FormatError, read_calibration, write_calibration
 
     with pytest.raises(ValueError, match="turn it back"):
         AsphereMirror.create(APEX, AXIS, 1 / 20.0, -1.5, 20.0, [0.0, -1e-4])
@@ -115,10 +115,10 @@ def test_an_asphere_is_checked_and_kept_in_files(tmp_path):
 def test_a_rig_through_an_asphere_calibrates():
     """The asphere given (a datasheet's), 8 views of the walls through it: the camera within 4
     reported std of the truth and 4 unseen views predicted at the noise."""
-    from slcvjax._calibrate import calibrate, held_out_rms, report
-    from slcvjax._lasers import Lasers
-    from slcvjax._rig import Rig
-    from slcvjax._simulate import box_scene, paper_views, simulate
+    from slcvjax.calibration.calibrate import calibrate, held_out_rms, report
+    from slcvjax.geometry.lasers import Lasers
+    from slcvjax.geometry.rig import Rig
+    from slcvjax.observations.simulate import box_scene, paper_views, simulate
 
     rig = Rig(paper_camera(), _mirror(), Lasers.create(np.zeros((0, 3)), np.zeros((0, 3))))
     obs_all, truth = simulate(box_scene(rig, paper_views(12), n_chess_views=0), noise=0.3, seed=4)

@@ -15,8 +15,8 @@ import sys
 import numpy as np
 import pytest
 
-from slcvjax._calibrate import calibrate, calibrate_many, resolve_batch
-from slcvjax._simulate import make_scene, simulate
+from slcvjax.calibration.calibrate import calibrate, calibrate_many, resolve_batch
+from slcvjax.observations.simulate import make_scene, simulate
 
 SCENE = dict(n_lasers=4, n_views=5)  # test_calibrate's sizes: the loop's compilation is shared
 SEEDS = (0, 1, 2)
@@ -25,8 +25,8 @@ SCRIPT = """
 import json
 import jax
 import numpy as np
-import slcvjax._calibrate as C
-from slcvjax._simulate import make_scene, simulate
+import slcvjax.calibration.calibrate as C
+from slcvjax.observations.simulate import make_scene, simulate
 
 shards = []
 solve = C._solve_batched

@@ -89,8 +89,8 @@ def test_two_processes_share_a_folder_at_once(tmp_path):
 TRACED = """
 import json, jax, jax.numpy as jnp, numpy as np
 import slcvjax
-from slcvjax import _persist
-from slcvjax._pose import Pose
+from slcvjax.support import persist as _persist
+from slcvjax.geometry.pose import Pose
 
 def f(pose, x, n):
     return {"y": pose.apply(x) * n.astype(float), "s": jnp.sum(x)}

@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 import slcvjax as sj
-from slcvjax import _lm, cli
-from slcvjax._calibrate import (
+from slcvjax import cli
+from slcvjax.calibration import lm as _lm
+from slcvjax.calibration.calibrate import (
     _carried,
     _misfit_boards,
     _solve,
@@ -23,10 +24,11 @@ from slcvjax._calibrate import (
     report,
     to_calibration,
 )
-from slcvjax._io import observations_to_json, read_calibration, write_observations
-from slcvjax._problem import Layout, pack, stack_poses
-from slcvjax._simulate import make_scene, simulate
-from slcvjax._staged import CalibrationError, calibrate_intrinsics, staged
+from slcvjax.calibration.staged import CalibrationError, calibrate_intrinsics, staged
+from slcvjax.cli.common import print_report
+from slcvjax.observations.formats import observations_to_json, read_calibration, write_observations
+from slcvjax.observations.problem import Layout, pack, stack_poses
+from slcvjax.observations.simulate import make_scene, simulate
 
 SCENE = dict(n_lasers=4, n_views=5)
 
@@ -74,7 +76,7 @@ def test_aimed_lasers_pass_through_their_spots_centroid_from_the_camera_centre(e
     """On exact data at the truth every spot's point lies on its laser's line, so the aimed line
     goes through a point of the true line (its spots' centroid) along that point's direction
     from the camera's centre; a laser without spots keeps its line."""
-    from slcvjax._staged import aimed_lasers
+    from slcvjax.calibration.staged import aimed_lasers
 
     obs, truth = exact
     pk = pack(obs)
@@ -323,7 +325,7 @@ def test_a_calibration_stopped_short_says_it_is_not_a_minimum(scene, capsys):
     cal = to_calibration(res, obs)
     unc = cal.extra["uncertainty"]
     assert unc["converged"] is False and "not a minimum" in unc["status"] and "3 steps" in unc["status"]
-    cli.print_report(cal)
+    print_report(cal)
     assert "WARNING    not a minimum" in capsys.readouterr().out
 
 

@@ -6,12 +6,12 @@ import dataclasses
 import numpy as np
 import pytest
 
-from slcvjax._camera import Camera
-from slcvjax._conic import ConicMirror
-from slcvjax._lasers import Lasers
-from slcvjax._problem import pack
-from slcvjax._rig import Rig
-from slcvjax._simulate import box_scene, paper_camera, paper_views, simulate
+from slcvjax.geometry.camera import Camera
+from slcvjax.geometry.conic import ConicMirror
+from slcvjax.geometry.lasers import Lasers
+from slcvjax.geometry.rig import Rig
+from slcvjax.observations.problem import pack
+from slcvjax.observations.simulate import box_scene, paper_camera, paper_views, simulate
 
 _NO_LASERS = Lasers.create(np.zeros((0, 3)), np.zeros((0, 3)))
 
@@ -28,7 +28,7 @@ def _through_mirror_only(rig, n_views=8, noise=0.3, seed=4):
 def test_the_central_start_finds_a_central_rig():
     """A camera at the far focus of a hyperboloid (no distortion, principal point at the image
     centre): the search recovers the eccentricity and the focal length it was rendered with."""
-    from slcvjax._central import central_start
+    from slcvjax.calibration.central import central_start
 
     R, e = 18.0, 1.6
     cam0 = paper_camera()
@@ -52,7 +52,7 @@ def test_a_rig_seen_through_its_mirror_only_calibrates(shape):
     mirror's lateral place trades off against its tilt and the principal point (a nearly central
     camera): its std says so (several mm), and what the calibration must get right is the
     pixels it predicts."""
-    from slcvjax._calibrate import calibrate, held_out_rms, report
+    from slcvjax.calibration.calibrate import calibrate, held_out_rms, report
 
     mirror = ConicMirror.of_kind("hyperboloid", [0.5, -0.3, 40.0], [0.015, -0.01, 1.0], 15.0, 20.0, -2.0)
     obs_all, truth = _through_mirror_only(Rig(paper_camera(), mirror, None), n_views=12, seed=4)
@@ -86,7 +86,7 @@ def test_a_rig_seen_through_its_mirror_only_calibrates(shape):
 def test_the_linear_loss_leaves_no_outlier_out():
     """One dot moved 8 px: the robust fit leaves it out and says so, the plain least-squares fit
     (``loss="linear"``) keeps every dot and its residual shows the dot."""
-    from slcvjax._calibrate import calibrate, report
+    from slcvjax.calibration.calibrate import calibrate, report
 
     mirror = ConicMirror.of_kind("hyperboloid", [0.5, -0.3, 40.0], [0.015, -0.01, 1.0], 15.0, 20.0, -2.0)
     obs, _ = _through_mirror_only(Rig(paper_camera(), mirror, None), n_views=6, seed=2)
@@ -109,10 +109,10 @@ def test_a_covariance_without_the_shape_column_is_read(tmp_path):
     the shape's variance 0, the rest in place."""
     import json
 
-    from slcvjax._io import Calibration, read_calibration, write_calibration
-    from slcvjax._pipe import measurement_inputs
-    from slcvjax._rig import SHAPE_COLUMN
-    from slcvjax._simulate import paper_rig
+    from slcvjax.geometry.rig import SHAPE_COLUMN
+    from slcvjax.images.pipe import measurement_inputs
+    from slcvjax.observations.formats import Calibration, read_calibration, write_calibration
+    from slcvjax.observations.simulate import paper_rig
 
     rig = paper_rig(2)
     write_calibration(tmp_path / "cal.json", Calibration(rig, []))
@@ -137,9 +137,9 @@ def test_a_shape_without_dimensions_from_the_cli(tmp_path, capsys):
     import json
 
     from slcvjax import cli
-    from slcvjax._central import GAUGE_VERTEX_RADIUS
-    from slcvjax._io import read_observations, write_observations
-    from slcvjax._staged import CalibrationError
+    from slcvjax.calibration.central import GAUGE_VERTEX_RADIUS
+    from slcvjax.calibration.staged import CalibrationError
+    from slcvjax.observations.formats import read_observations, write_observations
 
     mirror = ConicMirror.of_kind("hyperboloid", [0.5, -0.3, 40.0], [0.015, -0.01, 1.0], 15.0, 20.0, -2.0)
     obs, _ = _through_mirror_only(Rig(paper_camera(), mirror, None), n_views=6, seed=3)
@@ -154,8 +154,8 @@ def test_a_shape_without_dimensions_from_the_cli(tmp_path, capsys):
     k, sd = doc["mirror"]["conic_constant"], doc["uncertainty"]["mirror_std"]["conic_constant"]
     assert f"conic constant {k:.4f} (std {sd:.4f})" in capsys.readouterr().out
 
-    from slcvjax._calibrate import calibrate
-    from slcvjax._simulate import box_scene, simulate
+    from slcvjax.calibration.calibrate import calibrate
+    from slcvjax.observations.simulate import box_scene, simulate
 
     direct, _ = simulate(box_scene(Rig(paper_camera(), mirror, _NO_LASERS), paper_views(3), n_chess_views=4))
     with pytest.raises(CalibrationError, match="mirror_shape: the rim stage needs the hyperboloid's vertex_radius"):
@@ -166,7 +166,7 @@ def test_a_sphere_seen_through_itself_only_holds_its_axis():
     """A sphere's vertex slides over it with its axis (only its centre is seen): seen through the
     mirror only, the axis is held (std 0), the fit is at the noise and 4 views it never saw are
     predicted at the noise with camera and mirror held."""
-    from slcvjax._calibrate import calibrate, held_out_rms, report
+    from slcvjax.calibration.calibrate import calibrate, held_out_rms, report
 
     mirror = ConicMirror.of_kind("sphere", [0.5, -0.3, 40.0], [0.015, -0.01, 1.0], 25.0, 18.0)
     obs_all, _ = _through_mirror_only(Rig(paper_camera(), mirror, None), n_views=12, seed=5)
@@ -183,9 +183,9 @@ def test_a_sphere_seen_through_itself_only_holds_its_axis():
 
 def test_auto_needs_views_through_the_mirror_alone():
     """``mirror_shape.kind = "auto"`` with direct views, or with one view: a clear error."""
-    from slcvjax._calibrate import calibrate
-    from slcvjax._simulate import paper_rig
-    from slcvjax._staged import CalibrationError
+    from slcvjax.calibration.calibrate import calibrate
+    from slcvjax.calibration.staged import CalibrationError
+    from slcvjax.observations.simulate import paper_rig
 
     obs, _ = simulate(box_scene(paper_rig(2), paper_views(2), n_chess_views=3), noise=0.0, seed=1)
     with pytest.raises(CalibrationError, match="auto"):
@@ -199,7 +199,7 @@ def test_an_auto_shape_reads_and_writes(tmp_path):
     """``{"kind": "auto"}`` (with a vertex radius or without) is read from observations and written back."""
     import json
 
-    from slcvjax._io import read_observations, write_observations
+    from slcvjax.observations.formats import read_observations, write_observations
 
     mirror = ConicMirror.of_kind("hyperboloid", [0.5, -0.3, 40.0], [0.015, -0.01, 1.0], 15.0, 20.0, -2.0)
     obs, _ = _through_mirror_only(Rig(paper_camera(), mirror, None), n_views=2, noise=0.0)
@@ -217,7 +217,7 @@ def test_auto_picks_a_hyperboloid_by_held_out_views():
     the difference) within 5 %, which the report says it cannot tell apart where it is within two
     standard errors; the fit on every view finds the conic constant within 4 std.  (At 0.3 px
     the three fit the held-out views within 2 % of each other.)"""
-    from slcvjax._calibrate import AUTO_KINDS, calibrate, report
+    from slcvjax.calibration.calibrate import AUTO_KINDS, calibrate, report
 
     mirror = ConicMirror.of_kind("hyperboloid", [0.5, -0.3, 40.0], [0.015, -0.01, 1.0], 15.0, 20.0, -2.5)
     obs, _ = _through_mirror_only(Rig(paper_camera(), mirror, None), n_views=8, noise=0.02, seed=6)
@@ -237,8 +237,8 @@ def test_an_estimate_that_closes_the_conic_writes_a_readable_file(tmp_path):
     """An ellipsoid (conic constant -0.6) calibrated as a hyperboloid of unknown shape: the estimate
     crosses to an ellipsoid within 4 std, and its calibration file reads back (the rim, which
     bounds nothing, inside the ellipsoid's widest circle)."""
-    from slcvjax._calibrate import calibrate, report, to_calibration
-    from slcvjax._io import read_calibration, write_calibration
+    from slcvjax.calibration.calibrate import calibrate, report, to_calibration
+    from slcvjax.observations.formats import read_calibration, write_calibration
 
     mirror = ConicMirror.of_kind("ellipsoid", [0.5, -0.3, 40.0], [0.015, -0.01, 1.0], 15.0, 14.0, -0.6)
     obs, _ = _through_mirror_only(Rig(paper_camera(), mirror, None), n_views=8, seed=3)

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from slcvjax import cli
-from slcvjax._calibrate import laser_errors
-from slcvjax._io import read_calibration, read_observations
+from slcvjax.calibration.calibrate import laser_errors
+from slcvjax.observations.formats import read_calibration, read_observations
 
 
 @pytest.mark.slow
@@ -50,8 +50,8 @@ def test_calibrate_from_a_calibration_evaluates_it_on_held_out_views(tmp_path, c
     import dataclasses
     import json
 
-    from slcvjax._io import Calibration, write_calibration, write_observations
-    from slcvjax._simulate import box_scene, paper_rig, paper_views, simulate
+    from slcvjax.observations.formats import Calibration, write_calibration, write_observations
+    from slcvjax.observations.simulate import box_scene, paper_rig, paper_views, simulate
 
     rig = paper_rig(5)
     views = paper_views(14)

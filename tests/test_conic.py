@@ -9,10 +9,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from slcvjax._camera import project
-from slcvjax._conic import ConicMirror
-from slcvjax._mirror import back_project, intersect, project_through_mirror, reflect, surface_normal
-from slcvjax._simulate import paper_camera
+from slcvjax.geometry.camera import project
+from slcvjax.geometry.conic import ConicMirror
+from slcvjax.geometry.mirror import back_project, intersect, project_through_mirror, reflect, surface_normal
+from slcvjax.observations.simulate import paper_camera
 
 # (kind, vertex radius R, conic constant) with a rim of 25 mm
 SHAPES = [("sphere", 40.0, None), ("paraboloid", 30.0, None), ("hyperboloid", 20.0, -2.5), ("ellipsoid", 40.0, -0.5)]
@@ -31,7 +31,7 @@ def _line_distance(point, direction, x):
 
 def _surface_samples(mirror, n, rng, max_frac=0.95):
     """Surface points of ``mirror`` inside the rim (host)."""
-    from slcvjax._safe import orthonormal_basis
+    from slcvjax.support.safe import orthonormal_basis
 
     e1, e2 = (np.asarray(e) for e in orthonormal_basis(mirror.axis))
     rho = float(mirror.radius) * max_frac * np.sqrt(rng.uniform(0, 1, n))
@@ -149,8 +149,8 @@ def test_of_kind_checks_the_shape():
 
 
 def _conic_rig(kind="paraboloid", R=20.0, conic=None, n_lasers=5):
-    from slcvjax._rig import Rig
-    from slcvjax._simulate import paper_rig
+    from slcvjax.geometry.rig import Rig
+    from slcvjax.observations.simulate import paper_rig
 
     base = paper_rig(n_lasers)
     mirror = ConicMirror.of_kind(kind, [0.5, -0.3, 40.0], [0.015, -0.01, 1.0], R, 20.0, conic)
@@ -158,7 +158,7 @@ def _conic_rig(kind="paraboloid", R=20.0, conic=None, n_lasers=5):
 
 
 def test_conic_shapes_round_trip_through_the_files(tmp_path):
-    from slcvjax._io import (
+    from slcvjax.observations.formats import (
         Calibration,
         FormatError,
         read_calibration,
@@ -166,7 +166,7 @@ def test_conic_shapes_round_trip_through_the_files(tmp_path):
         write_calibration,
         write_observations,
     )
-    from slcvjax._simulate import box_scene, paper_views, simulate
+    from slcvjax.observations.simulate import box_scene, paper_views, simulate
 
     rig = _conic_rig("hyperboloid", 15.0, -2.0)
     obs, truth = simulate(box_scene(rig, paper_views(3), n_chess_views=3), noise=0.0)
@@ -193,8 +193,8 @@ def test_conic_shapes_round_trip_through_the_files(tmp_path):
 
 def test_a_paraboloid_rig_calibrates_near_its_bound():
     """The whole pipeline (rim, PnP through the mirror, the joint passes) with a paraboloid."""
-    from slcvjax._calibrate import calibrate, cramer_rao, laser_errors
-    from slcvjax._simulate import box_scene, paper_views, simulate
+    from slcvjax.calibration.calibrate import calibrate, cramer_rao, laser_errors
+    from slcvjax.observations.simulate import box_scene, paper_views, simulate
 
     scene = box_scene(_conic_rig(), paper_views(10), n_chess_views=6)
     obs, truth = simulate(scene, noise=0.3, seed=5)
@@ -210,8 +210,8 @@ def test_a_paraboloid_rig_calibrates_near_its_bound():
 
 
 def test_rendering_refuses_a_conic_mirror(tmp_path):
-    from slcvjax._render import render_scene
-    from slcvjax._simulate import box_scene, paper_views
+    from slcvjax.images.render import render_scene
+    from slcvjax.observations.simulate import box_scene, paper_views
 
     with pytest.raises(ValueError, match="cone mirror only"):
         render_scene(box_scene(_conic_rig(), paper_views(2), n_chess_views=1), tmp_path)
@@ -221,10 +221,10 @@ def test_a_catadioptric_camera_without_lasers_calibrates_from_the_cli(tmp_path, 
     """A hyperboloid rig with no lasers (``n_lasers: 0``): the file read, the rig calibrated,
     the calibration written with no lasers and its mirror within its reported std."""
     from slcvjax import cli
-    from slcvjax._io import write_observations
-    from slcvjax._lasers import Lasers
-    from slcvjax._rig import Rig
-    from slcvjax._simulate import box_scene, paper_views, simulate
+    from slcvjax.geometry.lasers import Lasers
+    from slcvjax.geometry.rig import Rig
+    from slcvjax.observations.formats import write_observations
+    from slcvjax.observations.simulate import box_scene, paper_views, simulate
 
     rig = _conic_rig("hyperboloid", 15.0, -2.0)
     rig = Rig(rig.camera, rig.mirror, Lasers.create(np.zeros((0, 3)), np.zeros((0, 3))))

@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 import slcvjax as sj
-from slcvjax import _design, cli
-from slcvjax._simulate import box_scene, paper_rig, paper_views
+from slcvjax import cli
+from slcvjax.experiments import design as _design
+from slcvjax.observations.simulate import box_scene, paper_rig, paper_views
 
 
 @pytest.fixture(scope="module")
@@ -78,7 +79,7 @@ def test_design_command_bad_options(tmp_path, capsys, argv, expected):
 
 
 def test_an_unsupported_prediction_is_written_as_null():
-    from slcvjax._design import MIN_SPOTS, Prediction
+    from slcvjax.experiments.design import MIN_SPOTS, Prediction
 
     pred = Prediction(np.array([0.5, np.inf]), np.array([0.01, np.inf]), 100, 2)
     doc = json.loads(json.dumps(pred.to_json()))

@@ -10,15 +10,21 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from slcvjax._calibrate import cramer_rao, laser_errors
-from slcvjax._centroids import calibrate_detected, corrected_observations, detection_sizes, resolve_ambiguous_boards
-from slcvjax._detect import BoardLayout, _order_grid, detect_folder, read_setup
-from slcvjax._io import FormatError
-from slcvjax._measure import disk_image_offset
-from slcvjax._mirror import project_through_mirror
-from slcvjax._render import RenderOptions, render_scene
-from slcvjax._rig import project_rim
-from slcvjax._simulate import (
+from slcvjax.calibration.calibrate import cramer_rao, laser_errors
+from slcvjax.cli import main
+from slcvjax.geometry.mirror import project_through_mirror
+from slcvjax.geometry.rig import project_rim
+from slcvjax.images.centroids import (
+    calibrate_detected,
+    corrected_observations,
+    detection_sizes,
+    resolve_ambiguous_boards,
+)
+from slcvjax.images.detect import BoardLayout, _order_grid, detect_folder, read_setup
+from slcvjax.images.render import RenderOptions, render_scene
+from slcvjax.measurement.measure import disk_image_offset
+from slcvjax.observations.formats import FormatError
+from slcvjax.observations.simulate import (
     PAPER_ROTATION_DEG,
     PAPER_TRANSLATION_MM,
     box_scene,
@@ -28,7 +34,6 @@ from slcvjax._simulate import (
     simulate,
     visible_spots,
 )
-from slcvjax.cli import main
 
 NOISE_FREE = RenderOptions(noise=0.0)
 

@@ -7,12 +7,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from slcvjax import _implicit
-from slcvjax._calibrate import calibrate
-from slcvjax._camera import undistort
-from slcvjax._mirror import solve_mirror_point
-from slcvjax._newton import exact_second_order
-from slcvjax._simulate import make_scene, simulate
+from slcvjax.calibration import implicit as _implicit
+from slcvjax.calibration.calibrate import calibrate
+from slcvjax.geometry.camera import undistort
+from slcvjax.geometry.mirror import solve_mirror_point
+from slcvjax.geometry.newton import exact_second_order
+from slcvjax.observations.simulate import make_scene, simulate
 
 # the scene and noise of test_calibrate's joint test: its compiled LM is reused
 SCENE = dict(n_lasers=4, n_views=5)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import slcvjax as sj
-from slcvjax._io import (
+from slcvjax.observations.formats import (
     FormatError,
     calibration_to_json,
     observations_to_json,
@@ -14,7 +14,7 @@ from slcvjax._io import (
     write_calibration,
     write_observations,
 )
-from slcvjax._simulate import make_scene, simulate
+from slcvjax.observations.simulate import make_scene, simulate
 
 
 @pytest.fixture(scope="module")
@@ -153,5 +153,5 @@ def test_atomic_write_leaves_nothing_on_failure(tmp_path, small):
     bad = sj.Rig(truth.rig.camera, truth.rig.mirror, sj.Lasers.create([[np.nan, 0, 0]], [[1.0, 0, 0]]))
     path = tmp_path / "out.json"
     with pytest.raises(ValueError):
-        write_calibration(path, sj._io.Calibration(bad))
+        write_calibration(path, sj.observations.formats.Calibration(bad))
     assert list(tmp_path.iterdir()) == []

@@ -6,11 +6,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from slcvjax import _laser_design as ld
 from slcvjax import cli
-from slcvjax._design import Plan
-from slcvjax._pipe import PipeScene, measure_observations, simulate_pipe, view_circle
-from slcvjax._simulate import box_scene, paper_rig, paper_views
+from slcvjax.experiments import laser_design as ld
+from slcvjax.experiments.design import Plan
+from slcvjax.images.pipe import PipeScene, measure_observations, simulate_pipe, view_circle
+from slcvjax.observations.simulate import box_scene, paper_rig, paper_views
 
 DIAMETERS = (110.0, 220.0)  # the preset's ring cannot show all its spots in the first
 

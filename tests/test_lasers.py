@@ -98,8 +98,8 @@ def test_working_point_foot_and_the_tangent_columns():
     assert abs(np.dot(x_ref - np.asarray(foot), u)) < 1e-9
     np.testing.assert_allclose(direction, u)
     # laser 1's tangent columns move laser 1 alone, as at_working_point's own increment does
-    from slcvjax._rig import laser_columns
-    from slcvjax._simulate import paper_rig
+    from slcvjax.geometry.rig import laser_columns
+    from slcvjax.observations.simulate import paper_rig
 
     rig = paper_rig(n)
     delta = np.zeros(rig.tangent_dim)

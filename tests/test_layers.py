@@ -1,50 +1,87 @@
-"""The package's layering: a module imports only modules of its own layer or below (imports
-inside functions included), and no two modules import each other, directly or around a cycle."""
+"""The package's layering: the subpackages are the pipeline's layers, and a module imports only
+modules of its own layer or below (imports inside functions included); no two modules import
+each other, directly or around a cycle."""
 
 import ast
 from pathlib import Path
 
 PACKAGE = Path(__file__).parent.parent / "slcvjax"
 
-# lowest first: what a layer may build on is every layer above it in this list
+# lowest first: a layer may build on every layer before it in this list
 LAYERS = [
-    ("support", {"_safe", "_cache", "_persist"}),
-    ("geometry", {"_pose", "_newton", "_camera", "_lasers", "_revolution", "_conic", "_mirror", "_rig"}),
-    ("observations", {"_io", "_problem", "_simulate", "_published"}),
-    ("calibration", {"_lm", "_staged", "_central", "_rigid", "_calibrate", "_implicit", "_chessboard"}),
-    ("measurement", {"_measure"}),
-    ("images", {"_detect", "_pipe", "_render", "_centroids"}),
-    ("plots", {"_plots"}),
-    ("experiments", {"_sweep", "_design", "_laser_design", "_omni"}),
-    ("interfaces", {"cli", "__init__"}),
+    "support",
+    "geometry",
+    "observations",
+    "calibration",
+    "measurement",
+    "images",
+    "plots",
+    "experiments",
+    "cli",
+    "__init__",
 ]
 
 
+def _name(path: Path) -> str:
+    """The module's dotted name under ``slcvjax`` (a package is named by its folder)."""
+    parts = path.relative_to(PACKAGE).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" and len(parts) > 1 else parts)
+
+
+def _is_package(path: Path) -> bool:
+    return path.name == "__init__.py"
+
+
 def _imports() -> dict[str, set[str]]:
+    """Each module's imports of other ``slcvjax`` modules, as dotted names under ``slcvjax``."""
+    modules = {_name(p): p for p in PACKAGE.rglob("*.py")}
     out = {}
-    for path in PACKAGE.glob("*.py"):
+    for name, path in modules.items():
+        here = [] if name == "__init__" else name.split(".")
+        base = here if _is_package(path) else here[:-1]
         deps = set()
         for node in ast.walk(ast.parse(path.read_text())):
-            if isinstance(node, ast.ImportFrom) and node.level == 1 and node.module:
-                deps.add(node.module.split(".")[0])
-            elif isinstance(node, ast.ImportFrom) and node.level == 1:  # from . import x
-                deps.update(a.name for a in node.names)
-        out[path.stem] = deps
+            if isinstance(node, ast.ImportFrom) and node.level >= 1:
+                anchor = base[: len(base) - (node.level - 1)] if node.level > 1 else base
+                mod = anchor + (node.module.split(".") if node.module else [])
+                for alias in node.names:  # `from .pkg import module` imports the module
+                    full = ".".join(mod + [alias.name])
+                    deps.add(full if full in modules else ".".join(mod))
+            elif isinstance(node, ast.Import | ast.ImportFrom):
+                names = [node.module] if isinstance(node, ast.ImportFrom) else [a.name for a in node.names]
+                for n in names:
+                    if n and n.split(".")[0] == "slcvjax":
+                        deps.add(".".join(n.split(".")[1:]) or "__init__")
+        out[name] = {d or "__init__" for d in deps} - {name}
     return out
 
 
+def _layer(module: str) -> str:
+    return module.split(".")[0]
+
+
 def test_every_module_has_a_layer():
-    placed = set().union(*(mods for _, mods in LAYERS))
-    assert set(_imports()) == placed
+    names = set(_imports())
+    assert {_layer(m) for m in names} <= set(LAYERS), sorted(m for m in names if _layer(m) not in LAYERS)
+    # the layers are folders: no module of the package lies loose beside them
+    loose = [p.name for p in PACKAGE.glob("*.py") if p.stem not in LAYERS]
+    assert not loose, loose
+
+
+def test_the_imports_are_resolved():
+    """Every import this test reads names a module of the package (the checks below see them all)."""
+    modules = set(_imports())
+    unknown = {f"{m} imports {d}" for m, deps in _imports().items() for d in deps if d not in modules}
+    assert not unknown, "\n".join(sorted(unknown))
 
 
 def test_no_module_imports_a_higher_layer():
-    level = {m: i for i, (_, mods) in enumerate(LAYERS) for m in mods}
+    level = {name: i for i, name in enumerate(LAYERS)}
     bad = [
-        f"{m} ({LAYERS[level[m]][0]}) imports {d} ({LAYERS[level[d]][0]})"
+        f"{m} ({_layer(m)}) imports {d} ({_layer(d)})"
         for m, deps in _imports().items()
         for d in deps
-        if level[d] > level[m]
+        if level[_layer(d)] > level[_layer(m)]
     ]
     assert not bad, "\n".join(bad)
 

@@ -6,10 +6,19 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from slcvjax._calibrate import _solve
-from slcvjax._lm import CONVERGED, MAX_STEPS, Params, loss_index, make_masks, pad_masks, pad_params, robust_cost
-from slcvjax._problem import Layout, pack, stack_poses
-from slcvjax._simulate import box_scene, paper_rig, paper_views, simulate
+from slcvjax.calibration.calibrate import _solve
+from slcvjax.calibration.lm import (
+    CONVERGED,
+    MAX_STEPS,
+    Params,
+    loss_index,
+    make_masks,
+    pad_masks,
+    pad_params,
+    robust_cost,
+)
+from slcvjax.observations.problem import Layout, pack, stack_poses
+from slcvjax.observations.simulate import box_scene, paper_rig, paper_views, simulate
 
 
 @pytest.mark.parametrize("c", [0.5, 2.0])

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from slcvjax import Lasers, Rig, cli
-from slcvjax._io import Calibration, write_calibration, write_observations
-from slcvjax._measure import fit_circle, fit_circle_3d, plane_basis, triangulate_spot, triangulate_spots
-from slcvjax._pipe import measure_observations, pipe_experiment, pipe_scene, simulate_pipe, view_circle
-from slcvjax._simulate import paper_rig
+from slcvjax.images.pipe import measure_observations, pipe_experiment, pipe_scene, simulate_pipe, view_circle
+from slcvjax.measurement.measure import fit_circle, fit_circle_3d, plane_basis, triangulate_spot, triangulate_spots
+from slcvjax.observations.formats import Calibration, write_calibration, write_observations
+from slcvjax.observations.simulate import paper_rig
 
 
 @pytest.fixture(scope="module")
@@ -174,7 +174,7 @@ def test_measure_bad_inputs(pipe_files, tmp_path, capsys):
     bad.write_text(json.dumps({"format": "slcv-observations/1"}))
     _fails(capsys, ["measure", str(bad), str(d / "obs.json"), "--out", out], "bad.json", "format")
     cam_only = tmp_path / "cam.json"
-    from slcvjax._io import calibration_to_json
+    from slcvjax.observations.formats import calibration_to_json
 
     no_lasers = Lasers.create(np.zeros((0, 3)), np.zeros((0, 3)))
     doc = calibration_to_json(Calibration(Rig(paper_rig().camera, None, no_lasers)))  # type: ignore[arg-type]
@@ -236,11 +236,11 @@ def test_the_pipe_is_measured_through_other_mirrors(mirror_kind):
     camera), the exact rig, 0.3 px: every spot gives a point, the points' error against the truth
     over their reported std between 0.7 and 1.25, and at least 14 of 16 diameters within two
     reported std of the truth."""
-    from slcvjax._camera import Camera
-    from slcvjax._conic import ConicMirror
-    from slcvjax._pipe import pipe_experiment, pipe_scene
-    from slcvjax._rig import Rig
-    from slcvjax._simulate import paper_rig
+    from slcvjax.geometry.camera import Camera
+    from slcvjax.geometry.conic import ConicMirror
+    from slcvjax.geometry.rig import Rig
+    from slcvjax.images.pipe import pipe_experiment, pipe_scene
+    from slcvjax.observations.simulate import paper_rig
 
     r0 = paper_rig(10)
     apex, axis = [0.6, -0.4, 48.0], [0.02, -0.015, 1.0]

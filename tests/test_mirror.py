@@ -6,7 +6,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 import slcvjax as sj
-from slcvjax._safe import orthonormal_basis
+from slcvjax.support.safe import orthonormal_basis
 
 from ._helpers import central_diff, random_camera, random_mirror
 from ._reference import RefRig
@@ -237,7 +237,7 @@ def test_mirror_retract_keeps_a_unit_axis_and_moves_5_dof():
 
 
 def test_apex_margin_continues_the_projection_smoothly_through_the_apex():
-    from slcvjax._simulate import paper_rig
+    from slcvjax.observations.simulate import paper_rig
 
     rig = paper_rig(1)
     cam, mirror = rig.camera, rig.mirror

@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from slcvjax._newton import exact_second_order, newton_implicit, newton_residual_norm
+from slcvjax.geometry.newton import exact_second_order, newton_implicit, newton_residual_norm
 
 
 def f(x, theta):

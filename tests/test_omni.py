@@ -9,10 +9,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from slcvjax._camera import Camera
-from slcvjax._conic import ConicMirror
-from slcvjax._mirror import back_project
-from slcvjax._pose import Pose
+from slcvjax.geometry.camera import Camera
+from slcvjax.geometry.conic import ConicMirror
+from slcvjax.geometry.mirror import back_project
+from slcvjax.geometry.pose import Pose
 
 COLS, ROWS, SQUARE = 7, 5, 30.0
 W, H = 640, 480
@@ -77,8 +77,8 @@ def _render(cam, mirror, pose: Pose, ss: int = 3) -> np.ndarray:
 
 
 def _truth_pixels(cam, mirror, pose):
-    from slcvjax._chessboard import board_points
-    from slcvjax._rig import Rig, project_board_points
+    from slcvjax.calibration.chessboard import board_points
+    from slcvjax.geometry.rig import Rig, project_board_points
 
     uv, ok = jax.jit(project_board_points)(Rig(cam, mirror, None), pose, jnp.asarray(board_points(COLS, ROWS, SQUARE)))
     return np.asarray(uv), np.asarray(ok)
@@ -104,7 +104,7 @@ def test_corners_detected_through_the_mirror_lie_on_the_truth(images):
     """Every board found; its corners in the grid's order (one of the two orders a symmetric
     reading allows), within 0.15 px RMS and 0.4 px at worst of the true projections (the mirror
     bends the squares' edges within the refiner's window: what is left is that bias)."""
-    from slcvjax._omni import omni_observations
+    from slcvjax.experiments.omni import omni_observations
 
     cam, mirror = _rig()
     paths, poses = images
@@ -124,10 +124,10 @@ def test_omni_calibrates_from_the_images(images, tmp_path):
     residual at the corners' error, the camera, the mirror's vertex and conic constant within 4
     reported std of the truth, the ninth image's corners predicted
     within 0.3 px with camera and mirror held; the calibration file and its residual plot written."""
-    from slcvjax._calibrate import held_out_rms
-    from slcvjax._io import read_calibration
-    from slcvjax._omni import omni_observations
+    from slcvjax.calibration.calibrate import held_out_rms
     from slcvjax.cli import main
+    from slcvjax.experiments.omni import omni_observations
+    from slcvjax.observations.formats import read_calibration
 
     paths, _ = images
     out = tmp_path / "cal.json"

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from slcvjax import cli
-from slcvjax._io import Calibration, write_calibration
-from slcvjax._pipe import pipe_scene, simulate_pipe, spots_from_images
-from slcvjax._render import RenderOptions, render_pipe
-from slcvjax._simulate import paper_rig
+from slcvjax.images.pipe import pipe_scene, simulate_pipe, spots_from_images
+from slcvjax.images.render import RenderOptions, render_pipe
+from slcvjax.observations.formats import Calibration, write_calibration
+from slcvjax.observations.simulate import paper_rig
 
 # not the preset: 7 lasers, a 160 mm pipe (the preset's ring sees a pipe under ~140 mm near the mirror's apex,
 # where the sensor's own reflection hides some spots), 5 poses

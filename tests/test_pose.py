@@ -27,7 +27,7 @@ def test_so3_exp_jacobian_at_zero_is_hat():
     for i in range(3):
         e = np.zeros(3)
         e[i] = 1.0
-        np.testing.assert_allclose(j[:, :, i], np.asarray(sj._pose.hat(jnp.asarray(e))), atol=1e-15)
+        np.testing.assert_allclose(j[:, :, i], np.asarray(sj.geometry.pose.hat(jnp.asarray(e))), atol=1e-15)
     w = jnp.array([0.3, -0.2, 0.1])
     np.testing.assert_allclose(jax.jacfwd(sj.so3_exp)(w), central_diff(sj.so3_exp, np.asarray(w)), atol=1e-8)
 

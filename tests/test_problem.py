@@ -3,9 +3,18 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from slcvjax._problem import Layout, bucket, dot_residuals, map_padded, map_rows, pack, spot_residuals, stack_poses
-from slcvjax._rig import laser_columns
-from slcvjax._simulate import make_scene, simulate
+from slcvjax.geometry.rig import laser_columns
+from slcvjax.observations.problem import (
+    Layout,
+    bucket,
+    dot_residuals,
+    map_padded,
+    map_rows,
+    pack,
+    spot_residuals,
+    stack_poses,
+)
+from slcvjax.observations.simulate import make_scene, simulate
 
 
 @pytest.fixture(scope="module")
@@ -81,8 +90,8 @@ def _rel(a, b):
 def test_padded_problem_solves_as_the_unpadded_one():
     """Padding in every array (dots, spots, rim, corners, board and direct-view poses) is
     masked out exactly: the same steps, cost, parameters, covariance and residual table."""
-    from slcvjax import _lm
-    from slcvjax._calibrate import _covariance_of_linearisation, _solve
+    from slcvjax.calibration import lm as _lm
+    from slcvjax.calibration.calibrate import _covariance_of_linearisation, _solve
 
     # the sizes of test_calibrate's scene, so that the padded solve (in its bucket) shares its compilation
     obs, truth = simulate(make_scene("paper", n_lasers=4, n_views=5), noise=0.5, seed=3)

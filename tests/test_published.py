@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from slcvjax._published import mei_observations, ocam_observations, ocam_residuals
+from slcvjax.observations.published import mei_observations, ocam_observations, ocam_residuals
 
 DATA = Path(os.environ.get("SLCVJAX_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 OCAM = {
@@ -51,7 +51,7 @@ def test_vmrimage_fits_below_ocamcalibs_published_rms():
     own sub-pixel corners: a train RMS below its published 0.386 px."""
     import dataclasses
 
-    from slcvjax._calibrate import calibrate, report
+    from slcvjax.calibration.calibrate import calibrate, report
 
     _need(OCAM["VMRImage"])
     obs, rec = ocam_observations(OCAM["VMRImage"], "2")
@@ -70,7 +70,7 @@ def test_mei_corners_detected_in_its_images():
     """``slcvjax omni``'s detector finds the 6x8 board in all 10 of Mei's images; in the seven
     views where the set's own corner file agrees with its images, the two lie within 0.05 px
     (the file: MATLAB corners, 1-based; SOURCE.md: within about 0.002 px of OpenCV's)."""
-    from slcvjax._omni import omni_observations
+    from slcvjax.experiments.omni import omni_observations
 
     _need(MEI)
     images = sorted(MEI.parent.glob("img_para_*.png"))
@@ -89,8 +89,8 @@ def test_mei_from_its_images_fits_below_omnidirs_rms():
     """The 8 views OpenCV omnidir kept, their corners detected here, the default through-mirror
     fit (a hyperboloid, its shape estimated, plain least squares): train RMS below omnidir's
     0.3564 px (SOURCE.md)."""
-    from slcvjax._calibrate import calibrate, report
-    from slcvjax._omni import omni_observations
+    from slcvjax.calibration.calibrate import calibrate, report
+    from slcvjax.experiments.omni import omni_observations
 
     _need(MEI)
     images = [sorted(MEI.parent.glob("img_para_*.png"))[i] for i in MEI_KEPT]

@@ -8,21 +8,21 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from slcvjax._calibrate import (
+from slcvjax.calibration.calibrate import (
     _covariance_of_linearisation,
     _linearisation,
     calibrate,
     cramer_rao,
     laser_errors,
 )
-from slcvjax._io import read_observations
-from slcvjax._lm import Params, make_masks, pad_masks
-from slcvjax._pose import Pose, so3_log
-from slcvjax._problem import pack, stack_poses, unstack_poses
-from slcvjax._rigid import board_pose_covariances, board_poses_of, box_model, rigid_masks, rigid_params
-from slcvjax._simulate import box_scene, paper_rig, paper_views, simulate
-from slcvjax._staged import CalibrationError
+from slcvjax.calibration.lm import Params, make_masks, pad_masks
+from slcvjax.calibration.rigid import board_pose_covariances, board_poses_of, box_model, rigid_masks, rigid_params
+from slcvjax.calibration.staged import CalibrationError
 from slcvjax.cli import main
+from slcvjax.geometry.pose import Pose, so3_log
+from slcvjax.observations.formats import read_observations
+from slcvjax.observations.problem import pack, stack_poses, unstack_poses
+from slcvjax.observations.simulate import box_scene, paper_rig, paper_views, simulate
 
 
 @pytest.fixture(scope="module")
@@ -152,7 +152,7 @@ def test_a_row_shifted_grid_does_not_fit_the_box(tmp_path, capsys):
     scene = box_scene(paper_rig(6), paper_views(12), n_chess_views=8)
     obs, truth = simulate(scene, noise=0.4, seed=11)
     path = tmp_path / "obs.json"
-    from slcvjax._io import write_observations
+    from slcvjax.observations.formats import write_observations
 
     write_observations(path, obs)
     doc = json.loads(path.read_text())

@@ -6,12 +6,12 @@ import json
 import numpy as np
 import pytest
 
-from slcvjax._calibrate import calibrate, cramer_rao, laser_errors, laser_std, report
-from slcvjax._problem import pack
-from slcvjax._rig import laser_columns
-from slcvjax._safe import std_of_variance
-from slcvjax._simulate import make_scene, simulate
-from slcvjax._staged import CalibrationError, fit_lasers
+from slcvjax.calibration.calibrate import calibrate, cramer_rao, laser_errors, laser_std, report
+from slcvjax.calibration.staged import CalibrationError, fit_lasers
+from slcvjax.geometry.rig import laser_columns
+from slcvjax.observations.problem import pack
+from slcvjax.observations.simulate import make_scene, simulate
+from slcvjax.support.safe import std_of_variance
 
 # not the preset: 6 lasers, 8 views
 SCENE = dict(n_lasers=6, n_views=8)

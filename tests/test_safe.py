@@ -3,7 +3,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from slcvjax._safe import (
+from slcvjax.support.safe import (
     orthonormal_basis,
     safe_arccos,
     safe_div,

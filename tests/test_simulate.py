@@ -8,7 +8,7 @@ import pytest
 
 import slcvjax as sj
 from slcvjax import cli
-from slcvjax._simulate import make_scene, simulate
+from slcvjax.observations.simulate import make_scene, simulate
 
 from ._reference import RefRig
 
@@ -157,8 +157,8 @@ def test_cli_simulate_writes_readable_files(tmp_path, capsys):
         ]
     )
     assert rc == 0
-    obs = sj._io.read_observations(tmp_path / "observations.json")
-    cal = sj._io.read_calibration(tmp_path / "truth.json")
+    obs = sj.observations.formats.read_observations(tmp_path / "observations.json")
+    cal = sj.observations.formats.read_calibration(tmp_path / "truth.json")
     assert obs.n_lasers == 5 and len(obs.views) == 3 and cal.rig.lasers.n == 5
     assert len(cal.board_poses) == 3 and len(cal.calibration_view_poses) == 12
     assert json.loads((tmp_path / "truth.json").read_text())["simulation"]["noise_px"] == 0.2

@@ -6,10 +6,10 @@ import json
 import numpy as np
 import pytest
 
-from slcvjax._calibrate import cramer_rao, laser_std
-from slcvjax._simulate import make_scene, simulate
-from slcvjax._sweep import COMPONENTS, laser_component_std, run_sweep, write_sweep
+from slcvjax.calibration.calibrate import cramer_rao, laser_std
 from slcvjax.cli import main
+from slcvjax.experiments.sweep import COMPONENTS, laser_component_std, run_sweep, write_sweep
+from slcvjax.observations.simulate import make_scene, simulate
 
 
 @pytest.fixture(scope="module")

@@ -7,12 +7,12 @@ import jax
 import numpy as np
 import pytest
 
-from slcvjax._camera import Camera, pixel_to_line, project
-from slcvjax._conic import ConicMirror
-from slcvjax._lasers import Lasers
-from slcvjax._mirror import ConeMirror, back_project, project_through_mirror
-from slcvjax._rig import Rig
-from slcvjax._simulate import box_scene, paper_views, simulate
+from slcvjax.geometry.camera import Camera, pixel_to_line, project
+from slcvjax.geometry.conic import ConicMirror
+from slcvjax.geometry.lasers import Lasers
+from slcvjax.geometry.mirror import ConeMirror, back_project, project_through_mirror
+from slcvjax.geometry.rig import Rig
+from slcvjax.observations.simulate import box_scene, paper_views, simulate
 
 _NO_LASERS = Lasers.create(np.zeros((0, 3)), np.zeros((0, 3)))
 W, H = 800, 700
@@ -110,7 +110,7 @@ def test_a_telecentric_calibration_and_observations_round_trip(tmp_path):
     ``camera_projection`` too, and an unknown one is refused naming the field."""
     import json
 
-    from slcvjax._io import (
+    from slcvjax.observations.formats import (
         Calibration,
         FormatError,
         read_calibration,
@@ -160,7 +160,7 @@ def test_a_telecentric_rig_calibrates_through_its_mirror(shape):
     and, where the last pass ran to its step limit in
     that flat valley, that the solution is not a minimum.  Both predict 4 unseen views at the
     noise, and the mirror's lateral place is within 4 std."""
-    from slcvjax._calibrate import calibrate, held_out_rms, report
+    from slcvjax.calibration.calibrate import calibrate, held_out_rms, report
 
     conic = -1.0 if shape == "paraboloid" else -1.6
     mirror = ConicMirror.create([0.6, -0.4, 60.0], [0.012, -0.008, 1.0], 1.0 / 20.0, conic, 32.0)
@@ -195,9 +195,9 @@ def test_a_telecentric_rig_calibrates_through_its_mirror(shape):
 
 def test_a_telecentric_camera_needs_a_conic_mirror_seen_through():
     """Direct views (OpenCV's pinhole calibration) cannot start a telecentric camera: a clear error."""
-    from slcvjax._calibrate import calibrate
-    from slcvjax._simulate import paper_rig
-    from slcvjax._staged import CalibrationError
+    from slcvjax.calibration.calibrate import calibrate
+    from slcvjax.calibration.staged import CalibrationError
+    from slcvjax.observations.simulate import paper_rig
 
     obs, _ = simulate(box_scene(paper_rig(2), paper_views(2), n_chess_views=3), noise=0.0, seed=1)
     obs = dataclasses.replace(obs, camera_projection="telecentric")

@@ -1,0 +1,659 @@
+"""The staged calibration (the paper's method), each stage usable alone.
+
+1. :func:`calibrate_intrinsics` -- Zhang's method on the direct chessboard views (OpenCV).
+2. :func:`mirror_from_rim` -- the rim circle (known radius) from its edge pixels: every
+   rim pixel's ray must meet the circle, so the circle's centre C and normal n minimise
+   ``sum (|X_i - C| - r)^2`` with ``X_i`` the ray's point on the plane ``n.(X - C) = 0``.
+   A circle seen in perspective has two such poses (the two-fold ambiguity); both are
+   returned and :func:`staged` keeps the one under which the boards fit best.
+3. :func:`board_poses` -- a generalized (non-central) planar PnP: a DLT on the reflected
+   rays about their mean origin, then Gauss-Newton on the true rays' point-to-ray
+   distances (divided by range, so the error is an angle).
+4. :func:`fit_lasers` -- each spot's reflected ray meets its board's plane at a 3D
+   point; a 3D line per laser by consensus over its spots, then least squares; spots
+   that lie near another laser's line instead of their own are given that laser, spots
+   near none are left out.
+"""
+
+import contextlib
+import dataclasses
+import threading
+from dataclasses import dataclass, field
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..geometry.camera import Camera, undistort
+from ..geometry.lasers import Lasers
+from ..geometry.mirror import ConeMirror, back_project, mirror_of_shape
+from ..geometry.pose import Pose, so3_exp
+from ..observations.formats import Observations, SpotObs, ViewObs, shape_missing
+from ..observations.problem import (
+    POSE_LADDER,
+    Packed,
+    bucket,
+    map_padded,
+    map_rows,
+    pack,
+    pad_rows,
+    unstack_poses,
+)
+from ..support.persist import PersistentJit
+
+_CV_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def _opencv_one_thread():
+    """OpenCV on one thread while inside: its threaded ``calibrateCamera`` sums in a varying order,
+    so the same corners gave intrinsics differing by ~4e-8 px from call to call, and the whole
+    calibration was not reproducible.  The lock keeps concurrent calibrations from racing on
+    OpenCV's global thread count."""
+    with _CV_LOCK:
+        n = cv2.getNumThreads()
+        cv2.setNumThreads(1)
+        try:
+            yield
+        finally:
+            cv2.setNumThreads(n)
+
+
+_back_many = PersistentJit(map_rows(jax.vmap(back_project, in_axes=(None, None, 0))), "back_project")
+
+
+def _rays_with_pixel_metric(camera, mirror, uv):
+    """Back-projected rays and, per ray, the 2x3 map from a direction change to pixels."""
+
+    def one(u):
+        ray = back_project(camera, mirror, u)
+        jac = jax.jacfwd(lambda x: back_project(camera, mirror, x).direction)(u)  # (3, 2)
+        return ray, jnp.linalg.pinv(jac)
+
+    return jax.vmap(one)(uv)
+
+
+_rays_with_pixel_metric = PersistentJit(map_rows(_rays_with_pixel_metric), "rays_with_pixel_metric")
+_undistort_many = PersistentJit(map_rows(jax.vmap(undistort, in_axes=(None, 0))), "undistort")
+
+
+class CalibrationError(ValueError):
+    """A calibration that cannot be done from these observations (the message says why)."""
+
+
+@dataclass
+class StageReport:
+    """What one stage did: its name, an RMS figure (its own units) and notes."""
+
+    name: str
+    rms: float
+    unit: str
+    notes: list[str] = field(default_factory=list)
+
+
+# ----------------------------------------------------------------------------- 1. intrinsics
+
+
+def calibrate_intrinsics(obs: Observations, flags: int = 0) -> tuple[Camera, dict[int, Pose], StageReport]:
+    """Camera intrinsics and direct-view poses from ``obs.calibration_views`` (OpenCV).
+
+    Views with fewer than 6 corners are skipped (listed in the report).  Returns the
+    camera, the pose ``T_cam_board`` of each used view (keyed by its index) and a report
+    whose ``rms`` is OpenCV's RMS reprojection error in px.
+    """
+    w, h = obs.image_size
+    objp, imgp, used, skipped = [], [], [], []
+    for i, cv in enumerate(obs.calibration_views):
+        if cv.seen.sum() < 6:
+            skipped.append(cv.name)
+            continue
+        objp.append(obs.boards[cv.board][cv.seen].astype(np.float32))
+        imgp.append(cv.pixels[cv.seen].astype(np.float32).reshape(-1, 1, 2))
+        used.append(i)
+    if len(used) < 3:
+        raise CalibrationError(
+            f"calibration_views: {len(used)} usable direct chessboard views (need at least 3 with 6 or more corners)"
+        )
+    with _opencv_one_thread():
+        rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(objp, imgp, (w, h), None, None, flags=flags)
+    cam = Camera.create(K[0, 0], K[1, 1], K[0, 2], K[1, 2], dist.ravel()[:5], w, h)
+    poses = {i: Pose.from_rvec(r.ravel(), t.ravel()) for i, r, t in zip(used, rvecs, tvecs, strict=True)}
+    notes = [f"{len(used)} views"] + ([f"skipped (under 6 corners): {', '.join(skipped)}"] if skipped else [])
+    return cam, poses, StageReport("intrinsics", float(rms), "px", notes)
+
+
+# ----------------------------------------------------------------------------- 2. mirror from the rim
+
+
+def _rim_residual(y, args):
+    rays, radius, scale, weight = args
+    c, tilt = y[:3], y[3:]
+    n0 = c / jnp.linalg.norm(c)
+    e1 = jnp.cross(n0, jnp.array([0.0, 1.0, 0.0]))
+    e1 = e1 / jnp.linalg.norm(e1)
+    e2 = jnp.cross(n0, e1)
+    n = n0 + tilt[0] * e1 + tilt[1] * e2
+    n = n / jnp.linalg.norm(n)
+    lam = jnp.dot(c, n) / (rays @ n)
+    x = lam[:, None] * rays
+    return (jnp.linalg.norm(x - c, axis=1) - radius) * scale * weight
+
+
+def _small_lm(res, retract, x0, dim: int, steps: int):
+    """``steps`` Levenberg-Marquardt steps on a small problem (jit- and vmap-friendly).
+
+    ``res(x)`` is the residual vector, ``retract(x, delta)`` moves ``x`` (any pytree) by a
+    tangent step of size ``dim``.  A fixed count, so that a batch of problems runs in
+    lockstep.  Returns ``x`` and its sum of squares.
+    """
+
+    def body(_, s):
+        x, lam, cost = s
+        r = res(x)
+        jac = jax.jacfwd(lambda d: res(retract(x, d)))(jnp.zeros(dim))
+        h = jac.T @ jac
+        step = jnp.linalg.solve(h + lam * jnp.diag(jnp.diag(h) + 1e-12), -jac.T @ r)
+        x2 = retract(x, step)
+        c2 = jnp.sum(res(x2) ** 2)
+        ok = c2 < cost
+        x = jax.tree_util.tree_map(lambda a, b: jnp.where(ok, a, b), x2, x)
+        return x, jnp.where(ok, lam / 3, lam * 4), jnp.where(ok, c2, cost)
+
+    x, _, cost = jax.lax.fori_loop(0, steps, body, (x0, jnp.asarray(1e-3), jnp.sum(res(x0) ** 2)))
+    return x, cost
+
+
+def _fit_circle(y0, rays, weight, radius, scale):
+    """The rim circle from one start: 15 LM steps (the preset's fits settle to 6 digits within 10).
+
+    ``weight`` (R,): 1 for a ray, 0 for padding."""
+    y, cost = _small_lm(lambda y: _rim_residual(y, (rays, radius, scale, weight)), lambda y, d: y + d, y0, 5, 15)
+    return y, jnp.sqrt(cost / jnp.maximum(jnp.sum(weight), 1.0))
+
+
+# all starts in one call
+_fit_circles = PersistentJit(jax.vmap(_fit_circle, in_axes=(0, None, None, None, None)), "fit_circles")
+
+
+def _circle_pose(y):
+    c, tilt = np.asarray(y[:3]), np.asarray(y[3:])
+    n0 = c / np.linalg.norm(c)
+    e1 = np.cross(n0, [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n0, e1)
+    n = n0 + tilt[0] * e1 + tilt[1] * e2
+    return c, n / np.linalg.norm(n)
+
+
+def mirror_from_rim(
+    camera: Camera, rim_pixels: np.ndarray, radius: float, height: float, shape: dict | None = None
+) -> tuple[list[ConeMirror], StageReport]:
+    """Candidate mirror poses (one or two) from the rim's edge pixels: the rim circle of
+    ``radius`` at the sag ``height`` from the vertex, of a mirror of ``shape`` (None: the cone).
+
+    The circle is fitted from nine starting tilts; distinct solutions whose RMS is
+    within 1.5x of the best are returned, best first.  ``rms`` is in px (first order).
+    """
+    rim = np.asarray(rim_pixels, float).reshape(-1, 2)
+    if len(rim) < 5:
+        raise CalibrationError(f"views[*].rim: {len(rim)} rim pixels in all (need at least 5 to fit the rim circle)")
+    xy, ok = map_padded(_undistort_many, camera, rows=rim)
+    xy = np.asarray(xy)[np.asarray(ok)]
+    rays = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
+    f = float(camera.fx)
+    (cx, cy), (aw, ah), _ = cv2.fitEllipse((xy * f).astype(np.float32))
+    semi = (aw + ah) / 4.0 / f
+    d0 = radius / semi
+    c0 = np.array([cx / f, cy / f, 1.0])
+    c0 = c0 / np.linalg.norm(c0) * d0
+    scale = f / d0
+    tilts = np.radians(4.0) * np.array([(0, 0), (1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1), (1, -1), (-1, 1)])
+    y0 = np.concatenate([np.broadcast_to(c0, (len(tilts), 3)), tilts], axis=1)
+    # every start's LM visits every ray, padding included: a finer ladder than the loops'
+    # (measured, benchmarks/bench_calibrate.py: with 4096 rays here and 64 slots per board
+    # below, the preset's staged stages took 0.36 s; with these, 0.16 s)
+    size = bucket(len(rays), 2048, 2)
+    padded = pad_rows(rays, size, np.array([0.0, 0.0, 1.0]))
+    weight = (np.arange(size) < len(rays)).astype(float)
+    ys, rmss = (
+        np.asarray(a)
+        for a in _fit_circles(jnp.asarray(y0), jnp.asarray(padded), jnp.asarray(weight), float(radius), float(scale))
+    )
+    sols = [
+        (float(rms), _circle_pose(y))
+        for y, rms in zip(ys, rmss, strict=True)
+        if np.all(np.isfinite(y)) and np.isfinite(rms)
+    ]
+    if not sols:
+        raise CalibrationError("views[*].rim: the rim circle could not be fitted")
+    sols.sort(key=lambda s: s[0])
+    best = sols[0][0]
+    distinct: list[tuple[float, tuple]] = []
+    for rms, (c, n) in sols:
+        if rms > 1.5 * best + 1e-9:
+            continue
+        if all(np.degrees(np.arccos(np.clip(abs(n @ n2), -1, 1))) > 0.05 for _, (_, n2) in distinct):
+            distinct.append((rms, (c, n)))
+    mirrors = []
+    for _, (c, n) in distinct[:2]:
+        if n @ c < 0:  # the axis points away from the camera, towards the rim
+            n = -n
+        mirrors.append(mirror_of_shape(shape, c - height * n, n, radius, height))
+    note = f"{len(rim)} rim pixels, {len(mirrors)} candidate pose(s)"
+    return mirrors, StageReport("mirror", best, "px", [note])
+
+
+# ----------------------------------------------------------------------------- 3. board poses
+
+
+def _dlt_planar(xb, d, m, mask):
+    """Batched planar DLT about the rays' mean origin: (P, M, .) arrays -> R (P,3,3), t (P,3)."""
+    w = mask[..., None]
+    c = np.sum(m * w, axis=1) / np.maximum(np.sum(w, axis=1), 1)
+    z = np.zeros(d.shape[:2])
+    hx = np.stack(
+        [
+            np.stack([z, -d[..., 2], d[..., 1]], -1),
+            np.stack([d[..., 2], z, -d[..., 0]], -1),
+            np.stack([-d[..., 1], d[..., 0], z], -1),
+        ],
+        axis=-2,
+    )  # (P, M, 3, 3)
+    a = np.concatenate([xb[..., 0, None, None] * hx, xb[..., 1, None, None] * hx, hx], axis=-1)  # (P,M,3,9)
+    a = (a * mask[..., None, None]).reshape(a.shape[0], -1, 9)
+    h = np.linalg.svd(a)[2][:, -1]
+    r1, r2, tp = h[:, :3], h[:, 3:6], h[:, 6:9]
+    s = 2.0 / (np.linalg.norm(r1, axis=1) + np.linalg.norm(r2, axis=1))
+    r1, r2, tp = r1 * s[:, None], r2 * s[:, None], tp * s[:, None]
+    front = np.einsum("pmi,pmi->pm", xb[..., :1] * r1[:, None] + xb[..., 1:2] * r2[:, None] + tp[:, None], d)
+    sign = np.where(np.sum(front * mask, axis=1) < 0, -1.0, 1.0)[:, None]
+    r1, r2, tp = r1 * sign, r2 * sign, tp * sign
+    u, _, vt = np.linalg.svd(np.stack([r1, r2, np.cross(r1, r2)], axis=2))
+    det = np.linalg.det(u @ vt)
+    R = u @ (np.eye(3)[None] * np.stack([np.ones_like(det), np.ones_like(det), det], 1)[:, None, :]) @ vt
+    return R, tp + c
+
+
+def _flipped(R: np.ndarray, t: np.ndarray, xb: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The mirror-image pose of each planar board: normal reflected about the line of sight to its centre."""
+    w = mask[..., None]
+    xbar = np.sum(xb * w, axis=1) / np.maximum(np.sum(w, axis=1), 1)
+    centre = np.einsum("pij,pj->pi", R, xbar) + t
+    v = centre / np.linalg.norm(centre, axis=1, keepdims=True)
+    n = R[:, :, 2]
+    n2 = 2 * np.sum(n * v, axis=1, keepdims=True) * v - n
+    axis = np.cross(n, n2)
+    s = np.linalg.norm(axis, axis=1, keepdims=True)
+    ang = np.arctan2(s[:, 0], np.sum(n * n2, axis=1))
+    axis = np.where(s > 1e-12, axis / np.maximum(s, 1e-300), 0.0)
+    k = np.zeros((len(axis), 3, 3))  # Rodrigues, batched: Q = I + sin(ang) K + (1 - cos(ang)) K^2
+    k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -axis[:, 2], axis[:, 1], -axis[:, 0]
+    k = k - k.transpose(0, 2, 1)
+    Q = np.eye(3) + np.sin(ang)[:, None, None] * k + (1 - np.cos(ang))[:, None, None] * (k @ k)
+    R2 = Q @ R
+    return R2, centre - np.einsum("pij,pj->pi", R2, xbar)
+
+
+def _pose_resid(R, t, xb, m, proj):
+    v = xb @ R.T + t - m
+    # range along the ray: proj rows are orthogonal to the ray, so use |v| as the range
+    rng = jnp.maximum(jnp.linalg.norm(v, axis=-1), 1e-6)
+    return jnp.einsum("nij,nj->ni", proj, v) / rng[:, None]
+
+
+def _refine_poses(R, t, xb, m, d, metric, mask):
+    """Batched Levenberg-Marquardt (20 steps) of planar poses on pixel-weighted ray distances."""
+
+    def one(R, t, xb, m, d, metric, mask):
+        proj = metric @ (jnp.eye(3)[None] - d[:, :, None] * d[:, None, :]) * mask[:, None, None]
+        (R, t), cost = _small_lm(
+            lambda x: _pose_resid(x[0], x[1], xb, m, proj).ravel(),
+            lambda x, dl: (so3_exp(dl[:3]) @ x[0], x[1] + dl[3:]),
+            (R, t),
+            6,
+            20,
+        )
+        return R, t, jnp.sqrt(cost / jnp.maximum(jnp.sum(mask), 1))
+
+    return jax.vmap(one)(R, t, xb, m, d, metric, mask)
+
+
+_refine_poses = PersistentJit(_refine_poses, "refine_poses")
+
+
+def board_poses(
+    camera: Camera, mirror: ConeMirror, pk: Packed, start: Pose | None = None, flips: bool = True
+) -> tuple[list[Pose], StageReport]:
+    """The pose of every (view, board) of ``pk`` from its dots, by generalized planar PnP.
+
+    ``start`` (stacked poses): refine from these instead of the DLT (both the start and
+    its flipped twin are tried).  ``flips=False``: the flipped twins are not tried (half the
+    work, for a search that scores many rigs).
+    """
+    rays, metric = map_padded(_rays_with_pixel_metric, camera, mirror, rows=pk.dot_pixels)
+    org, dirs, ok = np.asarray(rays.point), np.asarray(rays.direction), np.asarray(rays.valid)
+    metric = np.asarray(metric)
+    idx = np.asarray(pk.dot_pose)
+    pts = np.asarray(pk.dot_points)
+    n_p = pk.n_poses
+    counts = np.bincount(idx[ok], minlength=n_p)
+    for k in np.flatnonzero(counts < 4):
+        vi, b = pk.pose_keys[k]
+        raise CalibrationError(
+            f"views[{vi}].boards.{b}: {int(counts[k])} dots back-project onto the mirror (need at least 4 for its pose)"
+        )
+    mx = bucket(int(np.bincount(idx, minlength=n_p).max()), 16, 2)  # each board's LM visits every slot
+    shape = (bucket(n_p, *POSE_LADDER), mx)  # padded boards have no point (mask 0) and are cut off below
+    xb, m, d = np.zeros(shape + (3,)), np.zeros(shape + (3,)), np.tile([0.0, 0.0, 1.0], shape + (1,))
+    met, mask = np.zeros(shape + (2, 3)), np.zeros(shape)
+    slot = np.zeros(n_p, dtype=int)
+    for i in np.flatnonzero(ok):
+        k = idx[i]
+        j = slot[k]
+        slot[k] += 1
+        xb[k, j], m[k, j], d[k, j], met[k, j], mask[k, j] = pts[i], org[i], dirs[i], metric[i], 1.0
+    data = tuple(jnp.asarray(a) for a in (xb, m, d, met, mask))
+
+    def padded(R, t):  # padded boards: a pose in front of the camera
+        return pad_rows(R[:n_p], shape[0], np.eye(3)), pad_rows(t[:n_p], shape[0], np.array([0.0, 0.0, 1.0]))
+
+    starts = [padded(*_dlt_planar(xb[:n_p], d[:n_p], m[:n_p], mask[:n_p]))]
+    if start is not None:
+        starts.append(padded(np.asarray(start.R), np.asarray(start.t)))
+    R = t = errs = None
+    for R0, t0 in starts:
+        R1, t1, e1 = _refine_poses(jnp.asarray(R0), jnp.asarray(t0), *data)
+        # a small planar target has a second, flipped pose (its normal mirrored about the
+        # line of sight); refine that one too and keep the best fit of all candidates
+        found = [(R1, t1, e1)]
+        if flips:
+            R2, t2 = _flipped(np.asarray(R1), np.asarray(t1), xb, mask)
+            found.append(_refine_poses(jnp.asarray(R2), jnp.asarray(t2), *data))
+        for Rc, tc, ec in found:
+            ec = jnp.where(jnp.isfinite(ec), ec, jnp.inf)
+            if R is None:
+                R, t, errs = Rc, tc, ec
+                continue
+            better = ec < errs
+            R = jnp.where(better[:, None, None], Rc, R)
+            t = jnp.where(better[:, None], tc, t)
+            errs = jnp.where(better, ec, errs)
+    poses = unstack_poses(Pose(R, t))[:n_p]
+    errs = np.asarray(errs)[:n_p]
+    rms = float(np.sqrt(np.mean(np.square(errs)))) if errs.size else 0.0
+    return poses, StageReport("board_poses", rms, "px (first order)", [f"{len(poses)} board poses"])
+
+
+# ----------------------------------------------------------------------------- 4. lasers
+
+
+RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))  # median of |r| / sigma for 2D Gaussian r
+CONSENSUS_PX = 10.0  # a spot within this of a candidate line counts for it in the consensus
+REPAIR_SIGMAS = 5.0  # a spot further than this many noise sigmas from its own line is repaired
+MIN_REPAIR_PX = 1.0  # ... but never for less than this (a noise estimate can be tiny)
+
+
+@dataclass
+class LaserFit:
+    """:func:`fit_lasers`' result: the lines, the stage's report and what became of each spot.
+
+    ``labels`` (S,): the laser each spot is given (its own, another laser's, or -1: left
+    out); ``residual`` (S, L): each spot's distance from each laser's fitted line in px
+    (first order, see :func:`spot_line_residuals`); ``threshold`` (px): the distance past
+    which a spot does not belong to a line.
+    """
+
+    lasers: Lasers
+    report: StageReport
+    labels: np.ndarray
+    residual: np.ndarray
+    threshold: float
+
+
+def spot_line_residuals(org, dirs, metric, normals, origins, points, directions) -> np.ndarray:
+    """(S, L) px: each spot's distance from where each line ``(points, directions)`` meets
+    the spot's board plane (``normals``, ``origins``, per spot), seen from the spot's mirror
+    point ``org`` and mapped to pixels by its ray's ``metric`` (2x3, direction change to
+    pixels, to first order); inf where the line misses the plane, the point is behind the
+    mirror point, or behind the line's foot of the perpendicular from the camera centre (not
+    on the beam: see :func:`slcvjax.measurement.measure.triangulate_spot`)."""
+    den = normals @ directions.T  # (S, L)
+    lam = np.sum(normals[:, None, :] * (origins[:, None, :] - points[None]), axis=2) / np.where(
+        np.abs(den) < 1e-12, np.nan, den
+    )
+    q = points[None] + lam[..., None] * directions[None]  # (S, L, 3)
+    v = q - org[:, None, :]
+    dist = np.linalg.norm(v, axis=2)
+    dq = v / np.where(dist > 0, dist, np.nan)[..., None]
+    r = np.linalg.norm(np.einsum("sij,slj->sli", metric, dq - dirs[:, None, :]), axis=2)
+    ahead = (np.sum(dq * dirs[:, None, :], axis=2) > 0.0) & (np.sum(q * directions[None], axis=2) > 0.0)
+    return np.where(np.isfinite(r) & ahead, r, np.inf)
+
+
+def _line_through(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    centre = p.mean(axis=0)
+    d = np.linalg.svd(p - centre)[2][0]
+    return centre, (-d if d @ centre < 0 else d)
+
+
+def _spot_points(camera: Camera, mirror: ConeMirror, pk: Packed, poses: list[Pose]):
+    """Each spot's point where its reflected ray meets its board's plane (camera frame, mm),
+    whether that is usable (a valid ray, the board ahead of the mirror along it), and the rays'
+    origins, directions and pixel metrics with the boards' normals and origins per spot."""
+    rays, metric = map_padded(_rays_with_pixel_metric, camera, mirror, rows=pk.spot_pixels)
+    org, dirs, ok = np.asarray(rays.point), np.asarray(rays.direction), np.asarray(rays.valid)
+    metric = np.asarray(metric)
+    pose_of = np.asarray(pk.spot_pose)[: org.shape[0]]
+    normals = np.array([np.asarray(p.R)[:, 2] for p in poses]).reshape(-1, 3)[pose_of]
+    origins = np.array([np.asarray(p.t) for p in poses]).reshape(-1, 3)[pose_of]
+    den = np.sum(normals * dirs, axis=1)
+    lam = np.sum(normals * (origins - org), axis=1) / np.where(np.abs(den) < 1e-9, np.nan, den)
+    # the board must lie ahead of the mirror along the reflected ray
+    usable = ok & np.isfinite(lam) & (lam > 0)
+    pts = org + np.where(usable, lam, 0.0)[:, None] * dirs
+    return pts, usable, (org, dirs, metric, normals, origins)
+
+
+def aimed_lasers(camera: Camera, mirror: ConeMirror, pk: Packed, poses: list[Pose], lasers: Lasers) -> Lasers:
+    """``lasers`` with each line that has spots replaced by the line from the camera's centre
+    through the centroid of its spots' points on their boards: another start for a laser whose
+    spots lie along a short stretch of its line (aimed where the range hardly changes from view to
+    view), whose direction the points alone do not fix."""
+    pts, usable, _ = _spot_points(camera, mirror, pk, poses)
+    laser_of = np.asarray(pk.spot_laser)[: pts.shape[0]]
+    points, directions = np.array(lasers.points), np.array(lasers.directions)
+    for i in range(lasers.n):
+        sel = usable & (laser_of == i)
+        if sel.any():
+            c = pts[sel].mean(axis=0)
+            if np.linalg.norm(c) > 1e-6:
+                points[i], directions[i] = c, c / np.linalg.norm(c)
+    return Lasers.create(points, directions).canonical()
+
+
+def fit_lasers(
+    camera: Camera, mirror: ConeMirror, pk: Packed, poses: list[Pose], n_lasers: int, repair: bool = True
+) -> LaserFit:
+    """One 3D line per laser through its spots' points on their boards' planes, robust to
+    wrong labels and gross outliers.
+
+    Each spot's reflected ray meets its board's plane at a point.  Per laser, every pair of
+    its points proposes a line, and the one that most of its spots lie near (within
+    :data:`CONSENSUS_PX`, the truncated quadratic cost of MSAC) wins; a least-squares line
+    through those spots follows.  Then every spot is measured against every laser's line
+    (:func:`spot_line_residuals`): one further than ``REPAIR_SIGMAS`` noise sigmas (the
+    sigma from the median distance of the spots from their own lines) from its own line is
+    given the one other line it lies near, or left out where none or more than one is near;
+    the lines are fitted again to the spots they keep, twice.  ``repair=False``: every spot
+    keeps its label (a plain least-squares line per laser).
+
+    Raises :class:`CalibrationError` naming a laser whose consistent points cannot fix a
+    line (fewer than 2 points, or all within 1 mm of each other).  With no lasers, no lines.
+    """
+    if n_lasers == 0:
+        n_s = int(pk.counts[1])
+        none = Lasers.create(np.zeros((0, 3)), np.zeros((0, 3)))
+        report = StageReport("lasers", float("nan"), "px", ["no lasers"])
+        return LaserFit(none, report, np.full(n_s, -1), np.zeros((n_s, 0)), float("inf"))
+    pts, usable, (org, dirs, metric, normals, origins) = _spot_points(camera, mirror, pk, poses)
+    own = np.asarray(pk.spot_laser)[: org.shape[0]]
+
+    def residuals(points, directions):
+        return spot_line_residuals(org, dirs, metric, normals, origins, points, directions)
+
+    def fit(labels, consensus: bool):
+        points, directions = np.zeros((n_lasers, 3)), np.zeros((n_lasers, 3))
+        for laser in range(n_lasers):
+            idx = np.flatnonzero(usable & (labels == laser))
+            p = pts[idx]
+            spread = np.linalg.svd(p - p.mean(axis=0), compute_uv=False)[0] / np.sqrt(len(p)) if len(p) >= 2 else 0.0
+            if len(p) < 2 or spread < 0.5:
+                raise CalibrationError(
+                    f"laser {laser}: {len(p)} consistent spot point(s) spread over {2 * spread:.2g} mm cannot fix "
+                    "a line (need spots on at least 2 planes at different distances)"
+                )
+            if consensus and len(p) > 2:
+                a, b = np.triu_indices(len(p), 1)
+                far = np.linalg.norm(p[a] - p[b], axis=1) > 1.0
+                a, b = a[far], b[far]
+                cand_d = (p[b] - p[a]) / np.linalg.norm(p[b] - p[a], axis=1, keepdims=True)
+                r = residuals(p[a], cand_d)[idx]  # (own spots, candidates)
+                best = int(np.argmin(np.sum(np.minimum(r, CONSENSUS_PX) ** 2, axis=0)))
+                inl = r[:, best] < CONSENSUS_PX
+                if inl.sum() >= 2:
+                    p = p[inl]
+            points[laser], directions[laser] = _line_through(p)
+        return points, directions
+
+    labels = own.copy()
+    points, directions = fit(labels, consensus=repair)
+    threshold = np.inf
+    for _ in range(2 if repair else 0):
+        r = residuals(points, directions)
+        r_own = r[np.arange(len(own)), own]
+        finite = usable & np.isfinite(r_own)
+        sigma = float(np.median(r_own[finite])) / RAYLEIGH_MEDIAN if finite.any() else 0.0
+        threshold = max(REPAIR_SIGMAS * sigma, MIN_REPAIR_PX)
+        near = r <= threshold
+        labels = np.where(near[np.arange(len(own)), own], own, -1)
+        other = (labels < 0) & (near.sum(axis=1) == 1)
+        labels[other] = np.argmax(near[other], axis=1)
+        # a spot near no line keeps its own unless it is far from every line: with the
+        # geometry not final yet, the joint stage decides on the smaller misfits
+        keep = (labels < 0) & (near.sum(axis=1) == 0) & (r_own <= CONSENSUS_PX)
+        labels[keep] = own[keep]
+        labels[~usable] = -1
+        points, directions = fit(labels, consensus=False)
+    lasers = Lasers.create(points, directions).canonical()
+    r = residuals(np.asarray(lasers.points), np.asarray(lasers.directions))
+    kept = labels >= 0
+    resid = r[np.flatnonzero(kept), labels[kept]]
+    notes = [f"{n_lasers} lasers from {int(kept.sum())} spots"]
+    n_moved, n_out = int(np.sum(kept & (labels != own))), int(np.sum(usable & ~kept))
+    if n_moved or n_out:
+        notes.append(f"{n_moved} spot(s) given another laser, {n_out} left out (near no line, or near two)")
+    report = StageReport("lasers", float(np.sqrt(np.mean(np.square(resid)))) if resid.size else 0.0, "px", notes)
+    return LaserFit(lasers, report, labels, r, float(threshold))
+
+
+# ----------------------------------------------------------------------------- the whole staged pipeline
+
+
+@dataclass
+class Staged:
+    """The staged result: camera, mirror, lasers, board poses, direct-view poses, reports."""
+
+    camera: Camera
+    mirror: ConeMirror
+    lasers: Lasers
+    poses: list[Pose]
+    chess_poses: dict[int, Pose]
+    reports: list[StageReport]
+    packed: Packed | None = None
+
+
+def staged(obs: Observations, camera: Camera | None = None, pk: Packed | None = None, mirror=None) -> Staged:
+    """Run the four stages.  ``camera``: a known camera (skips the intrinsics stage);
+    ``mirror``: a known mirror pose and shape (skips the rim stage)."""
+    pk = pack(obs) if pk is None else pk
+    if not obs.views:
+        raise CalibrationError("views: no catadioptric views")
+    if pk.n_poses == 0:
+        raise CalibrationError("views[*].boards: no board dots seen in any view")
+    reports = []
+    chess: dict[int, Pose] = {}
+    if camera is None:
+        camera, chess, rep = calibrate_intrinsics(obs)
+        reports.append(rep)
+    if mirror is not None:
+        mirrors, rep_m = [mirror], StageReport("mirror", float("nan"), "px", ["given (not estimated from the rim)"])
+    else:
+        missing = shape_missing(obs.mirror_shape)
+        if missing:
+            raise CalibrationError(
+                f"mirror_shape: the rim stage needs the {obs.mirror_shape['kind']}'s {', '.join(missing)} (left out, "
+                "they are estimated only from views through the mirror alone: no calibration_views, no camera given)"
+            )
+        rim = np.concatenate([v.rim for v in obs.views]) if obs.views else np.zeros((0, 2))
+        mirrors, rep_m = mirror_from_rim(camera, rim, obs.mirror_radius, obs.mirror_height, obs.mirror_shape)
+    best = None
+    for i, m in enumerate(mirrors):
+        poses, rep_p = board_poses(camera, m, pk)
+        if best is None or rep_p.rms < best[2].rms:
+            best = (m, poses, rep_p, i)
+    mirror, poses, rep_p, chosen = best
+    if len(mirrors) > 1:
+        rep_m.notes.append(f"two-fold ambiguity resolved by the boards' fit: candidate {chosen + 1} kept")
+    n_open = sum(s.board is None for v in obs.views for s in v.spots)
+    if n_open:
+        obs, n_set = assign_spot_boards(obs, camera, mirror, pk, poses)
+        pk = pack(obs)
+        rep_p.notes.append(f"{n_set} of {n_open} spots without a board put on the first board plane their ray meets")
+    fit = fit_lasers(camera, mirror, pk, poses, obs.n_lasers)
+    return Staged(camera, mirror, fit.lasers, poses, chess, reports + [rep_m, rep_p, fit.report], pk)
+
+
+def assign_spot_boards(
+    obs: Observations, camera: Camera, mirror: ConeMirror, pk: Packed, poses: list[Pose]
+) -> tuple[Observations, int]:
+    """Give each spot that names no board the board whose plane its reflected ray meets first.
+
+    The camera sees the first surface along the reflected ray, so of the boards
+    with a pose in that view, the nearest plane ahead of the mirror is the one the
+    spot lies on (this settles spots near the corner of two walls, which the image
+    alone cannot).  That holds only where every board has a pose in the view; a
+    spot in a view where some board is missing keeps no board (and is not used).
+    Returns new observations and how many spots got a board.
+    """
+    index = {k: i for i, k in enumerate(pk.pose_keys)}
+    walls = {b for _, b in pk.pose_keys}
+    open_px = [s.pixel for v in obs.views for s in v.spots if s.board is None]
+    rays = map_padded(_back_many, camera, mirror, rows=np.reshape(np.asarray(open_px, dtype=float), (-1, 2)))
+    orgs, dirs, oks = (np.asarray(a) for a in (rays.point, rays.direction, rays.valid))
+    views, n_set, k = [], 0, 0
+    for vi, v in enumerate(obs.views):
+        spots = []
+        cands = [(b, poses[index[(vi, b)]]) for b in sorted(walls) if (vi, b) in index]
+        for s in v.spots:
+            if s.board is not None:
+                spots.append(s)
+                continue
+            org, d, ok = orgs[k], dirs[k], oks[k]
+            k += 1
+            best, lam_best = None, np.inf
+            # only where every wall has a pose here: otherwise the first plane met may not be the right one
+            if ok and len(cands) == len(walls):
+                for b, pose in cands:
+                    n, t = np.asarray(pose.R[:, 2]), np.asarray(pose.t)
+                    den = n @ d
+                    if abs(den) > 1e-9:
+                        lam = n @ (t - org) / den
+                        if 0 < lam < lam_best:
+                            best, lam_best = b, lam
+            if best is not None:
+                s = SpotObs(s.laser, best, s.pixel)
+                n_set += 1
+            spots.append(s)
+        views.append(ViewObs(v.name, v.boards, spots, v.rim))
+    return dataclasses.replace(obs, views=views), n_set

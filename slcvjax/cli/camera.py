@@ -1,0 +1,49 @@
+"""``slcvjax camera``: calibrate a plain camera from chessboard images."""
+
+import numpy as np
+
+from ..observations.formats import FormatError, write_calibration
+from .common import board_arg, export_opencv
+
+
+def run(args) -> int:
+    from ..calibration.chessboard import calibrate_camera_images
+    from ..calibration.staged import CalibrationError
+    from ..geometry.lasers import Lasers
+    from ..geometry.rig import Rig
+    from ..observations.formats import Calibration
+
+    cols, rows = board_arg(args.board)
+    if args.square <= 0:
+        raise FormatError(f"--square: must be positive, got {args.square}")
+    try:
+        res = calibrate_camera_images(args.images, (cols, rows), args.square)
+    except CalibrationError as e:
+        raise FormatError(str(e)) from None
+    for name, r in res.per_view_rms_px.items():
+        print(f"{name}: rms {r:.4f} px")
+    if res.missing:
+        print(f"no {cols}x{rows} board found in: {', '.join(res.missing)}")
+    c = res.camera
+    print(
+        f"fx {float(c.fx):.4f}  fy {float(c.fy):.4f}  cx {float(c.cx):.4f}  cy {float(c.cy):.4f}  "
+        f"dist {np.round(np.asarray(c.dist), 6).tolist()}"
+    )
+    print(f"rms {res.rms_px:.5f} px (OpenCV's calibrateCamera on the same corners: {res.opencv_rms_px:.5f} px)")
+    doc = Calibration(
+        Rig(c, None, Lasers(np.zeros((0, 3)), np.zeros((0, 3)))),  # type: ignore[arg-type]
+        extra={
+            "residuals": {
+                "rms_px": res.rms_px,
+                "per_view_rms_px": res.per_view_rms_px,
+                "opencv_rms_px": res.opencv_rms_px,
+                "images_without_board": res.missing,
+            }
+        },
+    )
+    write_calibration(args.out, doc)
+    print(f"wrote {args.out}")
+    if args.export_opencv:
+        export_opencv(args.export_opencv, c)
+        print(f"wrote {args.export_opencv}")
+    return 0

@@ -1,0 +1,205 @@
+"""What several commands print and write: the calibration report, the pipe report, number formats."""
+
+from pathlib import Path
+
+import numpy as np
+
+from ..observations.formats import FormatError, write_observations
+
+
+def summary(obs, truth) -> str:
+    rig = truth.rig
+    n_dots = sum(int(s.sum()) for v in obs.views for _, s in v.boards.values())
+    n_dots_all = sum(s.size for v in obs.views for _, s in v.boards.values())
+    n_spots = sum(len(v.spots) for v in obs.views)
+    n_rim = sum(len(v.rim) for v in obs.views)
+    n_corners = sum(int(c.seen.sum()) for c in obs.calibration_views)
+    cam = rig.camera
+    tilt = np.degrees(np.arccos(np.clip(float(rig.mirror.axis[2]), -1, 1)))
+    lines = [
+        f"camera   {cam.width}x{cam.height}  fx {float(cam.fx):.3f}  fy {float(cam.fy):.3f}  "
+        f"cx {float(cam.cx):.3f}  cy {float(cam.cy):.3f}  dist {np.round(np.asarray(cam.dist), 4).tolist()}",
+        f"mirror   cone r {float(rig.mirror.radius):g} mm  h {float(rig.mirror.height):g} mm  "
+        f"apex {np.round(np.asarray(rig.mirror.apex), 3).tolist()} mm  axis tilt {tilt:.2f} deg",
+        f"lasers   {rig.lasers.n}",
+        f"views    {len(obs.views)} catadioptric: {n_dots}/{n_dots_all} dots visible, "
+        f"{n_spots}/{len(obs.views) * rig.lasers.n} spots, {n_rim} rim pixels",
+        f"direct   {len(obs.calibration_views)} chessboard views, {n_corners} corners",
+    ]
+    return "\n".join(lines)
+
+
+def fmt(x, nd=3):
+    return "-" if x is None else f"{x:.{nd}f}"
+
+
+def print_report(cal, name: str = "") -> None:
+    """A short human-readable report of a calibration document's residuals and uncertainty."""
+    res, unc = cal.extra["residuals"], cal.extra["uncertainty"]
+    passes = cal.extra["stages"]["joint"]["passes"]
+    print(f"== {name}" if name else "==")
+    print(
+        f"rms {res['rms_px']:.3f} px   sigma {res['sigma_px']:.3f} px   dof {res['dof']}   "
+        f"joint: " + ", ".join(f"{p['name'].split(':')[0]} {p['steps']} steps {p['result']}" for p in passes)
+    )
+    print("per kind   " + "  ".join(f"{k} {fmt(v)}" for k, v in res["by_kind_rms_px"].items()))
+    print("per view   " + "  ".join(f"{k} {fmt(v)}" for k, v in res["per_view_rms_px"].items()))
+    print("per board  " + "  ".join(f"{k} {fmt(v)}" for k, v in res["per_board_rms_px"].items()))
+    if res["per_laser_rms_px"]:
+        print("per laser  " + "  ".join(f"{k}: {fmt(v)}" for k, v in res["per_laser_rms_px"].items()))
+    out = res["outliers"]
+
+    def _outlier(o):
+        laser = f" laser {o['laser']}" if "laser" in o else ""
+        return f"{o['kind']} {o['view']} {o['board']}{laser} {o['residual_px']:.1f} px"
+
+    listed = "; ".join(_outlier(o) for o in out[:10]) + (" ..." if len(out) > 10 else "")
+    print(f"outliers   {len(out)}" + (f": {listed}" if out else ""))
+    fixed = res.get("repairs", [])
+
+    def _repair(o):
+        what = " ".join(str(x) for x in (o["kind"], o["view"], o["board"]) if x) + (
+            f" #{o['index']}" if o["index"] >= 0 else ""
+        )
+        if o["action"] == "relabelled":
+            return f"{what} laser {o['laser']} -> {o['new_laser']}"
+        return f"{what} left out ({fmt(o['residual_px'], 1)} px)"
+
+    if fixed:
+        listed = "; ".join(_repair(o) for o in fixed[:10]) + (" ..." if len(fixed) > 10 else "")
+        print(f"repaired   {len(fixed)}: {listed}")
+    if res.get("rim_outliers"):
+        print(f"rim        {res['rim_outliers']} rim pixel(s) more than 5 sigma (the rim's own) off the rim")
+    if res["invalid"]:
+        print(f"invalid    {res['invalid']} observation(s) fall outside the model (off the mirror or the sensor)")
+    for st in cal.extra["stages"]["staged"]["reports"]:
+        if st["stage"] == "mirror_kind":
+            print("mirror kind " + "; ".join(st["notes"]))
+    if cal.rig.camera.telecentric:
+        print(f"camera     telecentric (fx, fy in px per {cal.rig.camera.unit:g} mm; its depth is the gauge, held)")
+    if not unc.get("converged", True):
+        print(f"WARNING    {unc['status']}")
+    cs = unc["camera_std"]
+    print(f"camera std fx {fmt(cs['fx'])} fy {fmt(cs['fy'])} cx {fmt(cs['cx'])} cy {fmt(cs['cy'])} px")
+    ms = unc["mirror_std"]
+    apex, tilt = (", ".join(fmt(v, 4) for v in ms[k]) for k in ("apex_mm", "axis_tilt_deg"))
+    print(f"mirror std apex [{apex}] mm  axis [{tilt}] deg")
+    if "conic_constant" in ms:  # the shape estimated
+        print(
+            f"mirror     {cal.rig.mirror.kind}, conic constant {float(cal.rig.mirror.conic):.4f} "
+            f"(std {fmt(ms['conic_constant'], 4)}), vertex radius {1.0 / float(cal.rig.mirror.curvature):g} mm held"
+        )
+    box = unc.get("rigid_box")
+    if box:
+        worst = max(
+            (max(v for v in d["translation_std_mm"] if v is not None) for d in box["boards"].values()), default=0.0
+        )
+        print(
+            f"rigid box  gauge {box['gauge']}, {len(box['boards'])} boards over {box['views']} views, box poses "
+            f"std <= {worst:.3g} mm, {len(box['left_out'])} board pose(s) left out (do not fit the box)"
+        )
+    for i, las in enumerate(unc["lasers"]):
+        print(
+            f"laser {i:2d}   std {fmt(las['position_std_mm'])} mm at {las['working_range_mm']:.0f} mm, "
+            f"direction {fmt(las['direction_std_deg'])} deg" + (f"  ({las['status']})" if "status" in las else "")
+        )
+
+
+def print_placed(notes: list[str]) -> None:
+    """One line for the targets the detector left out and the box placed (or could not)."""
+    if notes:
+        placed = sum("placed by the box" in n for n in notes)
+        print(f"{placed} of {len(notes)} targets the detector could not place were placed by the box's other walls")
+
+
+def export_opencv(path, camera) -> None:
+    """Write a camera as OpenCV FileStorage YAML (camera_matrix, distortion_coefficients)."""
+    import cv2
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp{path.suffix}")
+    fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
+    fs.write("image_width", int(camera.width))
+    fs.write("image_height", int(camera.height))
+    fs.write("camera_matrix", np.asarray(camera.K, float))
+    fs.write("distortion_coefficients", np.asarray(camera.dist, float).reshape(1, 5))
+    fs.release()
+    tmp.replace(path)
+
+
+def board_arg(text: str) -> tuple[int, int]:
+    try:
+        cols, rows = (int(x) for x in text.lower().split("x"))
+    except ValueError:
+        raise FormatError(f"--board: expected COLSxROWS inner corners such as 9x6, got {text!r}") from None
+    if cols < 2 or rows < 2:
+        raise FormatError(f"--board: a chessboard has at least 2x2 inner corners, got {text!r}")
+    return cols, rows
+
+
+def print_points(names, views, circles) -> None:
+    for k, (name, vp) in enumerate(zip(names, views, strict=True)):
+        flagged = int(np.sum(vp.parallel))
+        line = f"{name:>10s}  {len(vp.lasers):3d} points"
+        if flagged:
+            line += f" ({flagged} nearly parallel)"
+        for i in np.flatnonzero(vp.off_line):
+            other = f", on laser {vp.fits_laser[i]}'s" if vp.fits_laser[i] >= 0 else ""
+            line += f"; spot {vp.spot_index[i]} off laser {vp.lasers[i]}'s line{other} (left out)"
+        if vp.missing:
+            line += f", {len(vp.missing)} spot(s) without a point"
+        c = circles[k] if circles else None
+        if c is not None:
+            line += f"  diameter {c.diameter:.3f} +- {fmt(c.diameter_std)} mm  fit rms {c.rms:.3f} mm"
+            if c.nearly_parallel_used:
+                line += f"  (fewer than 3 reliable points: {c.nearly_parallel_used} nearly parallel ones used)"
+        print(line)
+
+
+def pipe_report(res, paper: bool = True) -> None:
+    s = res["summary"]
+    print(
+        f"pipe {s['true_diameter_mm']:g} mm, {s['poses']} poses, {s['points']} points: "
+        f"mean diameter {fmt(s['mean_diameter_mm'])} mm (median |error| "
+        f"{fmt(s['median_abs_diameter_error_mm'])} mm, rms reported std {fmt(s['rms_diameter_std_mm'])} mm; "
+        f"{s['diameters_within_two_std']} of {s['circles']} within two reported std of the truth)"
+    )
+    print(
+        f"per-point fit error: mean {fmt(s['fit_error_mean_mm'])} mm, max {fmt(s['fit_error_max_mm'])} mm; "
+        f"point error vs truth rms {fmt(s['point_error_rms_mm'])} mm (reported std rms "
+        f"{fmt(s['point_std_rms_mm'])} mm, {s['nearly_parallel']} nearly parallel points left out"
+        + (f", {s['off_line']} off their laser's line" if s.get("off_line") else "")
+        + ")"
+    )
+    print(
+        f"the reflected rays meet the laser lines at a median {fmt(s['median_ray_line_angle_deg'], 2)} deg: "
+        "the smaller the angle, the less a pixel says about the depth along the beam"
+    )
+    if s["points"] and s["nearly_parallel"] > s["points"] // 2:
+        print(
+            f"warning: {s['nearly_parallel']} of {s['points']} points are nearly parallel to their rays given the "
+            "pixel noise and the calibration's laser directions; these diameters are not reliable (see their std)"
+        )
+    if paper:
+        print("paper (Chen et al. 2019, real sensor): diameter 150.042 mm, fit errors < 3 mm, mean 1.5 mm")
+
+
+def write_pipe(out: Path, res: dict, points_name: str, noise: float) -> list[str]:
+    """Write a pipe experiment's observations, points (``slcv-points/1``) and plots; their names."""
+    from ..images.pipe import points_document
+    from ..observations.formats import write_json_atomic
+    from ..plots import plot_pipe
+
+    obs = res["observations"]
+    write_observations(out / "pipe_observations.json", obs)
+    names = [v.name for v in obs.views]
+    views, circles = [p["points"] for p in res["poses"]], [p["circle"] for p in res["poses"]]
+    meta = {"pixel_sigma": noise, "simulation": obs.extra["simulation"], "summary": res["summary"]}
+    write_json_atomic(out / points_name, points_document(names, views, circles, (0.0, 0.0, 1.0), meta))
+    plots = plot_pipe(res, out)
+    return ["pipe_observations.json", points_name] + [p.name for p in plots]
+
+
+def fmt_finite(x, nd=1, width=5):
+    return f"{x:{width}.{nd}f}" if np.isfinite(x) else f"{'-':>{width}s}"

@@ -1,0 +1,24 @@
+"""``slcvjax detect``: detect spots, dots, rim and corners in an image folder."""
+
+import sys
+import time
+
+from ..observations.formats import write_observations
+
+
+def run(args) -> int:
+    from ..images.detect import detect_folder
+
+    t0 = time.perf_counter()
+    obs, rep = detect_folder(args.folder, progress=sys.stderr.isatty())
+    for line in rep.lines():
+        print(line)
+    write_observations(args.out, obs)
+    n_dots = sum(int(s.sum()) for v in obs.views for _, s in v.boards.values())
+    n_spots = sum(len(v.spots) for v in obs.views)
+    n_corners = sum(int(c.seen.sum()) for c in obs.calibration_views)
+    print(
+        f"{n_dots} dots, {n_spots} spots, {sum(len(v.rim) for v in obs.views)} rim pixels, {n_corners} corners; "
+        f"wrote {args.out} ({time.perf_counter() - t0:.1f} s)"
+    )
+    return 0

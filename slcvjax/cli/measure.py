@@ -1,0 +1,65 @@
+"""``slcvjax measure``: 3D laser points (and pipe circles) from spots with a calibration."""
+
+from pathlib import Path
+
+import numpy as np
+
+from .common import print_points
+
+
+def _parse_axis(text: str | None):
+    if text is None:
+        return (0.0, 0.0, 1.0)
+    try:
+        axis = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise ValueError(f"--axis: expected three numbers x,y,z, got {text!r}") from None
+    if len(axis) != 3 or not np.all(np.isfinite(axis)) or np.linalg.norm(axis) < 1e-12:
+        raise ValueError(f"--axis: expected a non-zero finite vector x,y,z, got {text!r}")
+    return tuple(axis)
+
+
+def run(args) -> int:
+    from ..images.pipe import measure_observations, measurement_inputs, points_document, view_circle
+    from ..observations.formats import read_calibration, read_observations, write_json_atomic
+
+    cal = read_calibration(args.calibration)
+    sigma_cal, cov = measurement_inputs(args.calibration, cal)
+    sigma = args.pixel_sigma if args.pixel_sigma is not None else sigma_cal
+    if sigma is None:
+        raise ValueError(f"{args.calibration}: residuals: no residual sigma to use; give --pixel-sigma")
+    if Path(args.input).is_dir():
+        from ..images.pipe import spots_from_images
+
+        obs, problems = spots_from_images(args.input, cal.rig, sigma, cov, args.spot_mm, _parse_axis(args.axis))
+        bad = {k: v for k, v in problems.items() if v}
+        n = sum(len(v.spots) for v in obs.views)
+        print(f"{args.input}: {n} spots in {len(obs.views)} images, labelled by the calibration's laser lines"
+              + (f", centroids corrected for a {args.spot_mm:g} mm spot" if args.spot_mm else ""))  # fmt: skip
+        for name, probs in bad.items():
+            print(f"  {name}: " + "; ".join(probs))
+    else:
+        obs = read_observations(args.input)
+    if obs.n_lasers != cal.rig.lasers.n:
+        raise ValueError(
+            f"{args.input}: n_lasers: {obs.n_lasers}, but the calibration {args.calibration} has "
+            f"{cal.rig.lasers.n} lasers"
+        )
+    axis = _parse_axis(args.axis)
+    views = measure_observations(cal.rig, obs, sigma, cov)
+    names = [v.name for v in obs.views]
+    circles = None
+    if args.fit_circle:
+        circles = [view_circle(vp, axis, name=f"{args.input}: views[{k}] ({names[k]})") for k, vp in enumerate(views)]
+    meta = {
+        "calibration": str(args.calibration),
+        "input": str(args.input),
+        "pixel_sigma": sigma,
+        "uncertainty": "pixel noise and calibration covariance" if cov is not None else "pixel noise only",
+    }
+    doc = points_document(names, views, circles, axis if args.fit_circle else None, meta)
+    write_json_atomic(args.out, doc)
+    print_points(names, views, circles)
+    print(f"pixel sigma {sigma:.3f} px; uncertainty from {meta['uncertainty']}")
+    print(f"wrote {args.out}")
+    return 0

@@ -1,0 +1,45 @@
+"""``slcvjax omni``: calibrate a catadioptric camera from chessboard images seen through its mirror."""
+
+import time
+from pathlib import Path
+
+from ..observations.formats import FormatError, write_calibration, write_observations
+from .common import board_arg, print_report
+
+
+def run(args) -> int:
+    from ..calibration.calibrate import calibrate, to_calibration
+    from ..calibration.staged import CalibrationError
+    from ..experiments.omni import omni_observations, plot_residuals
+
+    pattern = board_arg(args.board)
+    if not args.square > 0:
+        raise FormatError(f"--square: must be positive, got {args.square}")
+    shape: dict = {"kind": args.mirror}
+    for key, val in (("vertex_radius", args.vertex_radius), ("conic_constant", args.conic), ("radius", args.rim)):
+        if val is not None:
+            shape[key] = val
+    obs, missing = omni_observations(
+        args.images, pattern, args.square, shape, "telecentric" if args.telecentric else "perspective"
+    )
+    n = len(obs.views)
+    print(f"{n} of {len(args.images)} images show the {pattern[0]}x{pattern[1]} board")
+    if missing:
+        print(f"no board found in: {', '.join(missing)}")
+    if args.observations:
+        write_observations(args.observations, obs)
+        print(f"wrote {args.observations}")
+    t0 = time.perf_counter()
+    try:
+        res = calibrate(obs, loss=args.loss)
+    except CalibrationError as e:
+        raise FormatError(str(e)) from None
+    cal = to_calibration(res, obs)
+    cal.extra["images_without_board"] = missing
+    print_report(cal, f"{n} views through the mirror ({time.perf_counter() - t0:.1f} s)")
+    write_calibration(args.out, cal)
+    print(f"wrote {args.out}")
+    if not args.no_plot:
+        out = Path(args.plot) if args.plot else Path(args.out).with_name(Path(args.out).stem + "_residuals.png")
+        print(f"wrote {plot_residuals(args.images, cal, obs, out)}")
+    return 0

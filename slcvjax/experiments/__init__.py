@@ -1,0 +1,1 @@
+"""Experiments on the model: noise sweeps, experiment and sensor design, catadioptric cameras from images."""

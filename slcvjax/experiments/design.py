@@ -1,0 +1,573 @@
+"""Experiment design: the predicted laser accuracy of a planned calibration, and better sensor poses.
+
+A plan is the rig, the box (four walls with 3x3 dot grids, half width ``w``), the
+direct chessboard views and ``V`` sensor poses in the box, ``T_box_cam`` of view ``v``
+given as a rotation vector and a translation (mm).  Its **prediction** is the
+Cramer-Rao bound of the calibration it would give: ``sigma^2 (J^T J)^-1`` at the true
+parameters (camera, mirror, lasers, every board pose, every chessboard pose), with
+``J`` the Jacobian of the joint problem's residuals (:mod:`slcvjax.calibration.lm`) over every dot that is
+visible, each laser's spot on the wall its beam meets first where it is visible, the
+rim's edge pixels and the chessboard corners, propagated to each laser's position error
+at its working point and its direction error (as :func:`slcvjax.calibration.calibrate.cramer_rao`).
+
+The **design** moves the sensor poses within a motion range to minimise the predicted
+error, by gradient descent through the bound.  Each coordinate of a pose is
+``range * tanh(u)``, so every iterate stays in range.  The gradient differentiates the
+Jacobian itself, so the reflection point's second derivatives enter (exact, by
+:func:`slcvjax.geometry.newton.exact_second_order`).  Which points are visible and which wall a beam
+meets are decided at the current poses and held while differentiating (they change
+discretely); a step is accepted only when the bound, re-evaluated with the new
+visibility, goes down (Adam steps with a backtracking length; a view whose visibility a
+trial step changes is held in place for that step).
+
+The objective is the mean over lasers of the predicted direction variance divided by
+its value at the start, plus (``position_weight``) the same for the position variance:
+a direction-only design may trade position for direction.
+"""
+
+import dataclasses
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from ..calibration import lm as _lm
+from ..calibration.calibrate import _laser_offset
+from ..calibration.lm import N_LAS, Params
+from ..geometry.lasers import line_plane_intersection
+from ..geometry.mirror import project_through_mirror
+from ..geometry.newton import exact_second_order
+from ..geometry.pose import Pose, so3_exp
+from ..geometry.rig import Rig, laser_columns, project_rim
+from ..observations.problem import Packed
+from ..observations.simulate import PAPER_HALF_WIDTH, PAPER_ROTATION_DEG, PAPER_TRANSLATION_MM, Scene, box_walls
+
+N_RIM = 90  # rim edge pixels per view, as the simulator writes
+MIN_DOTS = 4  # visible dots a board needs in a view for its pose
+MIN_SPOTS = 3  # spots each laser needs over the plan: with fewer its prediction is infinite
+
+
+@dataclass
+class Plan:
+    """A planned calibration: the sensor's poses in the box and what is known around them.
+
+    ``views`` (V, 6): ``T_box_cam`` of each view (rotation vector in rad, translation in mm).
+    ``rotation_range`` (rad) and ``translation_range`` (mm): the allowed motion, per axis
+    (roll, pitch, yaw; x, y, z of the box frame).
+    """
+
+    rig: Rig
+    views: np.ndarray
+    half_width: float = PAPER_HALF_WIDTH
+    rotation_range: np.ndarray = field(default_factory=lambda: np.radians(PAPER_ROTATION_DEG))
+    translation_range: np.ndarray = field(default_factory=lambda: np.asarray(PAPER_TRANSLATION_MM, dtype=float))
+    noise: float = 0.5
+    chess_poses: list[Pose] = field(default_factory=list)
+    chess_board: np.ndarray | None = None
+
+    def __post_init__(self):
+        self.views = np.asarray(self.views, dtype=float)
+        self.rotation_range = np.asarray(self.rotation_range, dtype=float)
+        self.translation_range = np.asarray(self.translation_range, dtype=float)
+        if self.views.ndim != 2 or self.views.shape[1] != 6 or self.views.shape[0] < 1:
+            raise ValueError(f"views must be an (n, 6) array with n >= 1, got shape {self.views.shape}")
+        if self.rotation_range.shape != (3,) or self.translation_range.shape != (3,):
+            raise ValueError("rotation_range and translation_range need 3 values each")
+        if np.any(self.rotation_range < 0) or np.any(self.translation_range < 0):
+            raise ValueError("the motion range must not be negative")
+        if not (np.isfinite(self.noise) and self.noise > 0):
+            raise ValueError(f"noise must be a positive number of pixels, got {self.noise}")
+        if not (np.isfinite(self.half_width) and self.half_width > 0):
+            raise ValueError(f"half_width must be positive, got {self.half_width}")
+
+    @staticmethod
+    def from_scene(scene: Scene, views: np.ndarray, noise: float = 0.5, **kw) -> "Plan":
+        """A plan with the scene's rig, chessboard views and box, at the given sensor poses."""
+        return Plan(
+            scene.rig,
+            views,
+            half_width=float(scene.info.get("box_half_width_mm", PAPER_HALF_WIDTH)),
+            noise=noise,
+            chess_poses=list(scene.chess_poses),
+            chess_board=np.asarray(scene.boards[scene.chess_board]),
+            **kw,
+        )
+
+    @property
+    def scale(self) -> np.ndarray:
+        return np.concatenate([self.rotation_range, self.translation_range])
+
+
+# ----------------------------------------------------------------------------- the bound as a function of the poses
+
+
+def _problem(plan: Plan):
+    """The fixed structure of the plan's joint problem: every dot, every (view, laser, wall) spot."""
+    boards, T_box_walls = box_walls(plan.half_width)
+    walls = [boards[f"wall{j}"] for j in range(4)]
+    n_v, n_l, n_d = plan.views.shape[0], plan.rig.lasers.n, walls[0].shape[0]
+    dot_pose = np.repeat(np.arange(4 * n_v), n_d)
+    dot_points = np.tile(np.concatenate(walls), (n_v, 1))
+    vv, ll, jj = np.meshgrid(np.arange(n_v), np.arange(n_l), np.arange(4), indexing="ij")
+    spot_pose, spot_laser = (4 * vv + jj).ravel(), ll.ravel()
+    angles = np.linspace(0.0, 2 * np.pi, N_RIM * n_v, endpoint=False)
+    rim, ok = project_rim(plan.rig, jnp.asarray(angles))
+    rim = np.asarray(rim)[np.asarray(ok)]
+    if plan.chess_poses:
+        board = np.asarray(plan.chess_board)
+        chess_pose = np.repeat(np.arange(len(plan.chess_poses)), board.shape[0])
+        chess_points = np.tile(board, (len(plan.chess_poses), 1))
+        chess = Pose(jnp.stack([p.R for p in plan.chess_poses]), jnp.stack([p.t for p in plan.chess_poses]))
+    else:
+        chess_pose, chess_points = np.zeros(0, int), np.zeros((0, 3))
+        chess = Pose(jnp.zeros((0, 3, 3)), jnp.zeros((0, 3)))
+    pk = Packed(
+        jnp.asarray(dot_pose),
+        jnp.asarray(dot_points),
+        jnp.zeros((dot_pose.size, 2)),
+        jnp.asarray(spot_pose),
+        jnp.asarray(spot_laser),
+        jnp.zeros((spot_pose.size, 2)),
+        jnp.asarray(rim),
+        jnp.asarray(chess_pose),
+        jnp.asarray(chess_points),
+        jnp.zeros((chess_pose.size, 2)),
+        jnp.asarray([dot_pose.size, spot_pose.size, rim.shape[0], chess_pose.size], dtype=jnp.int64),
+        (),
+        (),
+    )
+    T_bw = Pose(jnp.stack([p.R for p in T_box_walls]), jnp.stack([p.t for p in T_box_walls]))
+    return pk, T_bw, chess
+
+
+def _poses(views, T_bw: Pose) -> Pose:
+    """``T_cam_wall`` of every (view, wall), index ``4 v + j``."""
+    R_bc = jax.vmap(so3_exp)(views[:, :3])
+    t_bc = views[:, 3:]
+    R_cb = jnp.swapaxes(R_bc, 1, 2)
+    t_cb = -jnp.einsum("vij,vj->vi", R_cb, t_bc)
+    R = jnp.einsum("vij,wjk->vwik", R_cb, T_bw.R).reshape(-1, 3, 3)
+    t = (jnp.einsum("vij,wj->vwi", R_cb, T_bw.t) + t_cb[:, None, :]).reshape(-1, 3)
+    return Pose(R, t)
+
+
+def _weights(rig: Rig, poses: Pose, pk: Packed, n_v: int):
+    """Per observation, 1 where it would be observed: dots visible, spots on their first wall and visible."""
+    cam, mir, las = rig.camera, rig.mirror, rig.lasers
+
+    def dot_ok(R, t, xb):
+        return project_through_mirror(cam, mir, Pose(R, t).apply(xb)).valid
+
+    w_dot = jax.vmap(dot_ok)(poses.R[pk.dot_pose], poses.t[pk.dot_pose], pk.dot_points)
+
+    def spot(R, t, li):
+        p, d = las.points[li], las.directions[li]
+        x, ahead = line_plane_intersection(p, d, Pose(R, t))
+        lam = jnp.where(ahead, jnp.dot(x - p, d), -1.0)  # along the beam (unit direction); -1 behind it
+        return lam, x, project_through_mirror(cam, mir, x).valid
+
+    # a board needs 4 visible dots for its pose (the staged calibration's PnP): with fewer,
+    # neither its dots nor its spots can be used
+    usable = jax.ops.segment_sum(w_dot.astype(int), pk.dot_pose, num_segments=poses.t.shape[0]) >= MIN_DOTS
+    w_dot = w_dot & usable[pk.dot_pose]
+    lam, x, vis = jax.vmap(spot)(poses.R[pk.spot_pose], poses.t[pk.spot_pose], pk.spot_laser)
+    lam4 = jax.lax.stop_gradient(jnp.where(lam > 0.0, lam, jnp.inf).reshape(n_v, las.n, 4))
+    first = (jnp.arange(4)[None, None, :] == jnp.argmin(lam4, axis=2)[..., None]) & jnp.isfinite(lam4)
+    w_spot = first.reshape(-1) & vis & usable[pk.spot_pose]
+    # each laser's working point: the mean of its spots
+    xs = x.reshape(n_v, las.n, 4, 3)
+    ws = w_spot.reshape(n_v, las.n, 4, 1).astype(float)
+    x_ref = jnp.sum(ws * xs, axis=(0, 2)) / jnp.maximum(jnp.sum(ws, axis=(0, 2)), 1.0)
+    return w_dot, w_spot, x_ref
+
+
+def calibration_covariance(views, rig, T_bw, chess, pk, sigma, n_v):
+    """The plan's bound on the rig's tangent (camera, mirror, lasers: ``rig.tangent_dim`` square,
+    px^2 scaled by ``sigma^2``), which dots and spots are observed, and each laser's working point."""
+    poses = _poses(views, T_bw)
+    # which points are seen is held while differentiating; the working points move with the poses
+    w_dot, w_spot, x_ref = _weights(rig, poses, pk, n_v)
+    w_dot, w_spot = jax.lax.stop_gradient(w_dot), jax.lax.stop_gradient(w_spot)
+    params = Params(rig, poses, chess)
+    with exact_second_order():
+        rows = _lm._rows(params, pk)  # differentiated in reverse mode
+    n_d, n_s = pk.dot_pose.shape[0], pk.spot_pose.shape[0]
+    n_obs = _lm.n_observations(pk)
+    w_obs = jnp.concatenate([w_dot, w_spot, jnp.ones(n_obs - n_d - n_s, dtype=bool)]).astype(float)
+    g, nb = params.n_global, params.n_blocks
+    masks = _lm.make_masks(params)
+    ne = _lm.normal_equations(rows, w_obs[rows.obs], g, nb, masks.glob, masks.blocks)
+    cov = sigma**2 * _lm.schur_inverse(ne)[0]
+    return cov, w_dot, w_spot, x_ref
+
+
+def _predict(views, rig, T_bw, chess, pk, sigma, n_v):
+    """Per laser: predicted position variance (mm^2) at the working point and direction variance (rad^2)."""
+    cov, w_dot, w_spot, x_ref = calibration_covariance(views, rig, T_bw, chess, pk, sigma, n_v)
+
+    def laser(i):
+        s = laser_columns(i).start  # a traced index: the block by a dynamic slice
+        c = jax.lax.dynamic_slice(cov, (s, s), (N_LAS, N_LAS))
+        j = jax.jacfwd(lambda d: _laser_offset(rig.lasers, i, x_ref[i], d))(jnp.zeros(N_LAS))
+        return jnp.trace(j @ c @ j.T), c[2, 2] + c[3, 3]
+
+    pos, ang = jax.vmap(laser)(jnp.arange(rig.lasers.n))
+    # a laser with too few spots seen cannot be calibrated at all (its line needs spots on
+    # boards at different distances): no finite prediction
+    per_laser = jax.ops.segment_sum(w_spot.astype(int), pk.spot_laser, num_segments=rig.lasers.n)
+    enough = jnp.min(per_laser) >= MIN_SPOTS
+    pos, ang = jnp.where(enough, pos, jnp.inf), jnp.where(enough, ang, jnp.inf)
+    return pos, ang, jnp.sum(w_dot), jnp.sum(w_spot)
+
+
+@dataclass
+class Prediction:
+    """A plan's predicted laser accuracy: per laser std at the working point (mm) and of the direction (rad)."""
+
+    position_std_mm: np.ndarray
+    direction_std_rad: np.ndarray
+    n_dots: int
+    n_spots: int
+
+    @property
+    def position_rms_mm(self) -> float:
+        return float(np.sqrt(np.mean(self.position_std_mm**2)))
+
+    @property
+    def direction_rms_deg(self) -> float:
+        return float(np.degrees(np.sqrt(np.mean(self.direction_std_rad**2))))
+
+    def to_json(self) -> dict:
+        """JSON-ready; a prediction the plan cannot support (infinite: a laser without enough
+        spots) is written as null, with ``status`` saying so."""
+
+        def num(x):
+            return float(x) if np.isfinite(x) else None
+
+        out = {
+            "position_rms_mm": num(self.position_rms_mm),
+            "direction_rms_deg": num(self.direction_rms_deg),
+            "position_std_mm": [num(x) for x in self.position_std_mm],
+            "direction_std_deg": [num(x) for x in np.degrees(self.direction_std_rad)],
+            "dots": self.n_dots,
+            "spots": self.n_spots,
+        }
+        if not np.all(np.isfinite(self.position_std_mm)):
+            out["status"] = f"undetermined: a laser is left with fewer than {MIN_SPOTS} spots"
+        return out
+
+
+_predict_jit = jax.jit(_predict, static_argnames=("n_v",))
+
+
+def _objective(u, scale, rig, T_bw, chess, pk, sigma, n_v, ref_pos, ref_ang, pw):
+    pos, ang, _, _ = _predict(scale * jnp.tanh(u), rig, T_bw, chess, pk, sigma, n_v)
+    return jnp.mean(ang / ref_ang) + pw * jnp.mean(pos / ref_pos)
+
+
+_objective_jit = jax.jit(_objective, static_argnames=("n_v",))
+
+
+@jax.jit
+def _visible(u, scale, rig, T_bw, pk):
+    """Whether each dot, then each spot, would be observed at the poses ``scale * tanh(u)``."""
+    w_dot, w_spot, _ = _weights(rig, _poses(scale * jnp.tanh(u), T_bw), pk, u.shape[0])
+    return jnp.concatenate([w_dot, w_spot])
+
+
+_value_and_grad_jit = jax.jit(jax.value_and_grad(_objective), static_argnames=("n_v",))
+
+
+class _Compiled:
+    """A plan's fixed problem; the bound and its gradient are compiled once per problem size."""
+
+    def __init__(self, plan: Plan):
+        self.pk, self.T_bw, self.chess = _problem(plan)
+        self.scale = jnp.asarray(np.maximum(plan.scale, 1e-12))
+        self.n_v = plan.views.shape[0]
+        # the view of each dot, then of each spot (poses are indexed 4 v + wall)
+        self.obs_view = np.concatenate([np.asarray(self.pk.dot_pose), np.asarray(self.pk.spot_pose)]) // 4
+        self.args = (plan.rig, self.T_bw, self.chess, self.pk, jnp.asarray(float(plan.noise)))
+
+    def predict(self, views):
+        return _predict_jit(views, *self.args, n_v=self.n_v)
+
+    def objective(self, u, ref_pos, ref_ang, pw):
+        return _objective_jit(u, self.scale, *self.args, self.n_v, ref_pos, ref_ang, pw)
+
+    def visible(self, u) -> np.ndarray:
+        return np.asarray(_visible(u, self.scale, self.args[0], self.T_bw, self.pk))
+
+    def value_and_grad(self, u, ref_pos, ref_ang, pw):
+        return _value_and_grad_jit(u, self.scale, *self.args, self.n_v, ref_pos, ref_ang, pw)
+
+    def u_of(self, views: np.ndarray) -> jnp.ndarray:
+        x = np.clip(views / np.asarray(self.scale), -1.0 + 1e-9, 1.0 - 1e-9)
+        return jnp.asarray(np.arctanh(x))
+
+    def views_of(self, u) -> np.ndarray:
+        return np.asarray(self.scale * jnp.tanh(u))
+
+
+def predict(plan: Plan) -> Prediction:
+    """The predicted (Cramer-Rao) laser accuracy of a planned calibration."""
+    c = _Compiled(plan)
+    return _prediction(c, plan.views)
+
+
+def _prediction(c: _Compiled, views) -> Prediction:
+    pos, ang, nd, ns = c.predict(jnp.asarray(views, dtype=float))
+    return Prediction(np.sqrt(np.asarray(pos)), np.sqrt(np.asarray(ang)), int(nd), int(ns))
+
+
+@dataclass
+class DesignResult:
+    """The poses before and after, their predictions, and the objective at each accepted step."""
+
+    before: Plan
+    after: Plan
+    predicted_before: Prediction
+    predicted_after: Prediction
+    history: list[float]
+    timings: dict
+
+
+def _line_search(c: "_Compiled", u, step, lr, f0, ref_pos, ref_ang, pw):
+    """A step ``u - a * step`` (a <= lr) that lowers the objective: ``(u, f, a)``, or Nones.
+
+    A trial step that changes what a view sees (a dot leaving the image, a beam meeting
+    another wall) may raise the bound although the gradient, blind to visibility, says it
+    falls: such views are held in place and the step is tried again; otherwise the length
+    is halved (at most 8 tries).
+    """
+    held = np.zeros(c.n_v, dtype=bool)
+    seen = None
+    for _ in range(8):
+        u_new = u - lr * step * jnp.asarray(~held, dtype=float)[:, None]
+        f_new = float(c.objective(u_new, ref_pos, ref_ang, pw))
+        if np.isfinite(f_new) and f_new < f0:
+            return u_new, f_new, lr
+        if seen is None:
+            seen = c.visible(u)
+        changed = np.zeros(c.n_v, dtype=bool)
+        np.logical_or.at(changed, c.obs_view, c.visible(u_new) != seen)
+        if changed.any() and not (held | changed).all():
+            held |= changed
+        else:
+            lr *= 0.5
+    return None, None, None
+
+
+def optimise(
+    plan: Plan,
+    steps: int = 60,
+    learning_rate: float = 0.3,
+    position_weight: float = 0.5,
+    progress: bool = False,
+) -> DesignResult:
+    """Sensor poses within the plan's motion range that minimise the predicted laser error.
+
+    Adam (:func:`optax.scale_by_adam`) on ``u`` (pose = range * tanh(u)), each step shortened
+    until the objective, re-evaluated at the new poses (visibility included), goes down, views
+    whose visibility the step changes held in place (:func:`_line_search`); where no step helps, Adam starts
+    afresh once.  Stops after ``steps`` accepted steps or when a fresh start does not help.
+    """
+    t0 = time.perf_counter()
+    c = _Compiled(plan)
+    u = c.u_of(plan.views)
+    pos0, ang0, _, _ = c.predict(c.scale * jnp.tanh(u))
+    ref_pos, ref_ang = jnp.maximum(pos0, 1e-30), jnp.maximum(ang0, 1e-30)
+    pw = jnp.asarray(float(position_weight))
+    f, grad = c.value_and_grad(u, ref_pos, ref_ang, pw)
+    t_compile = time.perf_counter() - t0
+    history = [float(f)]
+    adam = optax.scale_by_adam(b1=0.9, b2=0.999, eps=1e-12)
+    state = adam.init(u)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=steps, desc="design", unit="step")
+    lr = learning_rate
+    restarted = False
+    while len(history) <= steps:
+        with jax.numpy_dtype_promotion("standard"):  # optax mixes an int32 count into float powers
+            step, state = adam.update(grad, state)
+        u_new, f_new, lr_used = _line_search(c, u, step, lr, history[-1], ref_pos, ref_ang, pw)
+        if u_new is None:
+            if restarted:
+                break
+            # stuck: the moments carried the poses against a visibility edge; start Adam afresh
+            state, lr, restarted = adam.init(u), learning_rate, True
+            continue
+        restarted = False
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(objective=f"{f_new:.3f}")
+        u, lr = u_new, min(lr_used * 1.2, learning_rate)
+        f, grad = c.value_and_grad(u, ref_pos, ref_ang, pw)
+        history.append(float(f))
+    if bar is not None:
+        bar.close()
+    after = dataclasses.replace(plan, views=c.views_of(u))
+    before_pred = _prediction(c, plan.views)
+    after_pred = _prediction(c, after.views)
+    timings = {"compile_s": t_compile, "total_s": time.perf_counter() - t0}
+    return DesignResult(plan, after, before_pred, after_pred, history, timings)
+
+
+# ----------------------------------------------------------------------------- confirmation, output
+
+
+def confirm(plan: Plan, trials: int, seed: int = 0, progress: bool = False) -> dict:
+    """Monte Carlo check of a plan: simulate and calibrate it ``trials`` times at its noise.
+
+    Returns the RMS over trials and lasers of the joint calibration's position error at
+    each laser's true working point (mm) and of its direction error (deg), how many
+    calibrations converged, and how many could not be made at all (``failed``, with the
+    first reason: a plan whose views leave a laser without usable spots); the RMS figures
+    are None when every trial failed.
+    """
+    from ..calibration.calibrate import laser_errors
+    from ..observations.simulate import box_scene
+
+    scene = box_scene(plan.rig, plan.views, plan.half_width, n_chess_views=len(plan.chess_poses) or 12)
+    pos, ang, conv, failed = [], [], 0, []
+    for _, truth, res, error in simulated_calibrations(plan, trials, seed, progress):
+        if res is None:
+            failed.append(error)
+            continue
+        conv += res.passes[-1].converged
+        p, a = laser_errors(res.rig, truth.rig, _true_working_points(scene))
+        pos.append(p)
+        ang.append(a)
+    out = {"trials": trials, "converged": conv, "failed": len(failed)}
+    if failed:
+        out["first_failure"] = failed[0]
+    if not pos:
+        return out | {"position_rms_mm": None, "direction_rms_deg": None}
+    pos, ang = np.concatenate(pos), np.concatenate(ang)
+    return out | {
+        "position_rms_mm": float(np.sqrt(np.mean(pos**2))),
+        "direction_rms_deg": float(np.degrees(np.sqrt(np.mean(ang**2)))),
+    }
+
+
+def simulated_calibrations(plan: Plan, trials: int, seed: int = 0, progress: bool = False):
+    """``trials`` simulations of the plan's box calibration at its noise (trial ``t``: seed
+    ``seed + t``), each calibrated from its usable observations: yields ``(obs, truth, result,
+    None)``, or ``(obs, truth, None, reason)`` where a calibration cannot be made."""
+    from ..calibration.calibrate import calibrate
+    from ..calibration.staged import CalibrationError
+    from ..observations.simulate import box_scene, simulate
+
+    if trials < 1:
+        raise ValueError(f"trials must be at least 1, got {trials}")
+    scene = box_scene(plan.rig, plan.views, plan.half_width, n_chess_views=len(plan.chess_poses) or 12)
+    it = range(trials)
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(it, desc="confirm", unit="calibration")
+    for t in it:
+        obs, truth = simulate(scene, noise=plan.noise, seed=seed + t)
+        try:
+            yield obs, truth, calibrate(usable_observations(obs)), None
+        except CalibrationError as e:
+            yield obs, truth, None, str(e)
+
+
+def usable_observations(obs):
+    """``obs`` without the boards seen by fewer than 4 dots in a view (and without their spots), as predicted."""
+    views = []
+    for v in obs.views:
+        keep = {b for b, (_, seen) in v.boards.items() if int(seen.sum()) >= MIN_DOTS}
+        boards = {b: (px, seen if b in keep else np.zeros_like(seen)) for b, (px, seen) in v.boards.items()}
+        views.append(dataclasses.replace(v, boards=boards, spots=[s for s in v.spots if s.board in keep]))
+    return dataclasses.replace(obs, views=views)
+
+
+def _true_working_points(scene: Scene) -> np.ndarray:
+    from ..observations.simulate import visible_spots
+
+    n = scene.rig.lasers.n
+    acc, cnt = np.zeros((n, 3)), np.zeros(n)
+    for v in range(len(scene.box_poses)):
+        for laser, _, x, _ in visible_spots(scene, v):
+            acc[laser] += x
+            cnt[laser] += 1
+    pts = np.asarray(scene.rig.lasers.points)
+    return np.where(cnt[:, None] > 0, acc / np.maximum(cnt, 1)[:, None], pts)
+
+
+def _views_json(views: np.ndarray) -> list[dict]:
+    return [{"rvec_deg": np.degrees(v[:3]).tolist(), "t_mm": v[3:].tolist()} for v in views]
+
+
+def design_document(res: DesignResult, confirmed: dict | None = None) -> dict:
+    """The ``slcv-design/1`` document: the plan, the poses before and after, the predictions."""
+    p = res.before
+    return {
+        "format": "slcv-design/1",
+        "units": "mm",
+        "box_width_mm": 2.0 * p.half_width,
+        "noise_px": p.noise,
+        "motion_range": {
+            "rotation_deg": np.degrees(p.rotation_range).tolist(),
+            "translation_mm": p.translation_range.tolist(),
+        },
+        "views_frame": "T_box_cam per view: rotation vector (deg) and translation (mm) of the sensor in the box",
+        "views_before": _views_json(p.views),
+        "views_after": _views_json(res.after.views),
+        "predicted": {"before": res.predicted_before.to_json(), "after": res.predicted_after.to_json()},
+        "objective_history": res.history,
+        "confirmed": confirmed,
+        "timings": res.timings,
+    }
+
+
+def plot_design(res: DesignResult, path) -> Path:
+    """Per-laser predicted std before and after, and the sensor positions in the box (top view)."""
+    from ..plots import _plt
+
+    plt = _plt()
+    path = Path(path)
+    b, a = res.predicted_before, res.predicted_after
+    n = b.position_std_mm.size
+    x = np.arange(n)
+    fig, axs = plt.subplots(1, 3, figsize=(15, 4.5))
+    axs[0].bar(x - 0.2, np.degrees(b.direction_std_rad), 0.4, label=f"before (rms {b.direction_rms_deg:.3f} deg)")
+    axs[0].bar(x + 0.2, np.degrees(a.direction_std_rad), 0.4, label=f"after (rms {a.direction_rms_deg:.3f} deg)")
+    axs[0].set_ylabel("predicted direction std (deg)")
+    axs[1].bar(x - 0.2, b.position_std_mm, 0.4, label=f"before (rms {b.position_rms_mm:.3f} mm)")
+    axs[1].bar(x + 0.2, a.position_std_mm, 0.4, label=f"after (rms {a.position_rms_mm:.3f} mm)")
+    axs[1].set_ylabel("predicted position std at the working point (mm)")
+    for ax in axs[:2]:
+        ax.set_xlabel("laser")
+        ax.set_xticks(x)
+        ax.legend(fontsize=8)
+        ax.grid(alpha=0.3, axis="y")
+    ax = axs[2]
+    tr = res.before.translation_range
+    ax.plot([-tr[0], tr[0], tr[0], -tr[0], -tr[0]], [-tr[1], -tr[1], tr[1], tr[1], -tr[1]], "k:", lw=1)
+    lim = 1.4 * max(tr[0], tr[1], 1.0)
+    ax.set_xlim(-lim, lim)
+    ax.set_ylim(-lim, lim)
+    for views, style, name in ((res.before.views, "o", "before"), (res.after.views, "^", "after")):
+        t, yaw = views[:, 3:], views[:, 2]
+        ax.quiver(t[:, 0], t[:, 1], np.cos(yaw), np.sin(yaw), angles="xy", width=0.004, alpha=0.6)
+        ax.plot(t[:, 0], t[:, 1], style, ms=5, label=name)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x in the box (mm)")
+    ax.set_ylabel("y in the box (mm)")
+    ax.set_title("sensor positions and yaw (arrows)\ndotted: the motion range")
+    ax.legend(fontsize=8)
+    fig.suptitle(f"Experiment design: {res.before.views.shape[0]} views, noise {res.before.noise} px")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path

@@ -1,0 +1,200 @@
+"""Noise-sensitivity sweeps: Monte Carlo calibrations at several pixel noises beside the Cramér–Rao bound.
+
+A sweep simulates one scene (a preset) at each noise level ``trials`` times with
+different seeds, calibrates every trial (staged, then joint), and compares each laser
+with the truth component by component, as in Figs. 6–7 of Chen, Zhou & Xue (2019):
+
+* ``x0, y0, z0``: the point of the estimated line nearest the laser's true working
+  point (the mean of its spots), minus that working point (mm);
+* ``nx, ny, nz``: the estimated unit direction (sign-aligned) minus the true one.
+
+The bound is the same scene's ``sigma^2 (J^T J)^-1`` at the truth, propagated to the
+same components; it scales with the noise, so it is computed once.  Every trial has
+the same observation shapes, so the whole sweep shares one compilation.  The trials
+are calibrated by :func:`calibrate_many`: on a CPU in a loop, two at a time in threads
+(a ``vmap`` batch waits for its slowest trial: ``benchmarks/bench_sweep.py`` measured
+the loop 1.8x faster), on an accelerator all of them in lockstep, each LM pass one
+``vmap``-ped solve with the trial axis sharded over the devices.
+"""
+
+import csv
+import io
+import os
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..calibration.calibrate import calibrate_many, cramer_rao, laser_errors, resolve_batch
+from ..geometry.rig import Rig, laser_columns
+from ..observations.formats import write_json_atomic, write_text_atomic
+from ..observations.simulate import make_scene, simulate
+from ..support.safe import std_of_variance
+
+SWEEP_FORMAT = "slcv-sweep/1"
+COMPONENTS = ("x0", "y0", "z0", "nx", "ny", "nz")
+
+
+def laser_component_errors(est: Rig, truth: Rig, x_ref: np.ndarray) -> np.ndarray:
+    """Per laser the errors of ``x0, y0, z0`` (mm) and ``nx, ny, nz``: shape (N, 6)."""
+    p, d = np.asarray(est.lasers.points), np.asarray(est.lasers.directions)
+    dt = np.asarray(truth.lasers.directions)
+    d = d * np.where(np.sum(d * dt, axis=1, keepdims=True) < 0, -1.0, 1.0)
+    foot = p + np.sum((x_ref - p) * d, axis=1, keepdims=True) * d
+    return np.concatenate([foot - x_ref, d - dt], axis=1)
+
+
+def laser_component_std(rig: Rig, cov_glob: np.ndarray, x_ref: np.ndarray) -> np.ndarray:
+    """Per laser the standard deviations of ``x0 .. nz`` from the global covariance: (N, 6)."""
+    out = np.zeros((rig.lasers.n, 6))
+
+    def comps(delta4, i):
+        return jnp.concatenate(rig.lasers.at_working_point(i, x_ref[i], delta4))
+
+    for i in range(rig.lasers.n):
+        sl = laser_columns(i)
+        j = np.asarray(jax.jacfwd(comps)(jnp.zeros(4), i))
+        out[i] = std_of_variance(np.diag(j @ np.asarray(cov_glob)[sl, sl] @ j.T))
+    return out
+
+
+def _summaries(comp: np.ndarray, pos: np.ndarray, ang: np.ndarray) -> dict:
+    """``comp`` (levels, trials, N, 6), ``pos``/``ang`` (levels, trials, N) -> the JSON block of a method."""
+    return {
+        "position_rms_mm": np.sqrt(np.mean(pos**2, axis=(1, 2))).tolist(),
+        "direction_rms_deg": np.degrees(np.sqrt(np.mean(ang**2, axis=(1, 2)))).tolist(),
+        "per_laser": {
+            c: np.sqrt(np.mean(comp[..., k] ** 2, axis=1)).T.tolist()  # [laser][level]
+            for k, c in enumerate(COMPONENTS)
+        },
+    }
+
+
+def run_sweep(
+    preset: str = "paper",
+    noise: tuple[float, ...] = (0.0, 0.3, 0.6, 0.9),
+    trials: int = 8,
+    seed: int = 0,
+    n_lasers: int = 10,
+    n_views: int = 16,
+    progress: bool = False,
+    batch: str = "auto",
+) -> dict:
+    """Run a sweep; returns the ``slcv-sweep/1`` document (plus per-trial details under ``trials_detail``).
+
+    Trial ``t`` of level ``l`` simulates with seed ``seed + 1000 l + t``.  ``batch``:
+    how the trials are calibrated (:func:`calibrate_many`: ``auto``, ``loop`` or ``vmap``).
+    """
+    noise = tuple(float(s) for s in noise)
+    if not noise or any(not np.isfinite(s) or s < 0 for s in noise):
+        raise ValueError(f"noise: expected non-negative pixel sigmas, got {list(noise)}")
+    if trials < 1:
+        raise ValueError(f"trials: expected at least 1, got {trials}")
+    batch = resolve_batch(batch)
+    t0 = time.perf_counter()  # the bound's compilation included
+    scene = make_scene(preset, n_lasers=n_lasers, n_views=n_views)
+    exact, truth = simulate(scene)
+    unit = cramer_rao(truth, exact, 1.0)  # the bound at 1 px; it scales with the noise
+    x_ref = unit["x_ref"]
+    unit_comp = laser_component_std(truth.rig, np.asarray(unit["cov"].glob), x_ref)
+    n = truth.rig.lasers.n
+    shape = (len(noise), trials, n)
+    comp = {m: np.zeros(shape + (6,)) for m in ("staged", "joint")}
+    pos = {m: np.zeros(shape) for m in ("staged", "joint")}
+    ang = {m: np.zeros(shape) for m in ("staged", "joint")}
+    detail = []
+    seeds = [(li, s, t, seed + 1000 * li + t) for li, s in enumerate(noise) for t in range(trials)]
+    observations = [simulate(scene, noise=s, seed=sd)[0] for _, s, _, sd in seeds]
+    t1 = time.perf_counter()
+    # on a CPU two calibrations at once overlap one's host steps with the other's solves
+    results = calibrate_many(observations, batch=batch, progress=progress, workers=min(2, os.cpu_count() or 1))
+    per_trial = (time.perf_counter() - t1) / len(results)
+    for (li, s, t, sd), res in zip(seeds, results, strict=True):
+        st = res.staged
+        for m, rig in (("joint", res.rig), ("staged", Rig(st.camera, st.mirror, st.lasers))):
+            comp[m][li, t] = laser_component_errors(rig, truth.rig, x_ref)
+            pos[m][li, t], ang[m][li, t] = laser_errors(rig, truth.rig, x_ref)
+        detail.append(
+            {
+                "noise": s,
+                "trial": t,
+                "seed": sd,
+                # in lockstep (vmap) the trials share their time: the batch's mean
+                "seconds": res.timings["total_s"] if batch == "loop" else per_trial,
+                "converged": res.passes[-1].converged,
+            }
+        )
+    sig = np.asarray(noise)
+    bound_comp = sig[:, None, None] * unit_comp[None]  # (levels, N, 6)
+    bound = {
+        "position_rms_mm": (sig * unit["position_rms_mm"]).tolist(),
+        "direction_rms_deg": (sig * np.degrees(unit["direction_rms_rad"])).tolist(),
+        "per_laser": {c: bound_comp[..., k].T.tolist() for k, c in enumerate(COMPONENTS)},
+    }
+    return {
+        "format": SWEEP_FORMAT,
+        "noise": list(noise),
+        "trials": trials,
+        "methods": {
+            "staged": _summaries(comp["staged"], pos["staged"], ang["staged"]),
+            "joint": _summaries(comp["joint"], pos["joint"], ang["joint"]),
+            "bound": bound,
+        },
+        "scene": {"preset": preset, "lasers": n, "views": n_views, "seed": seed},
+        "batch": batch,
+        "devices": [str(d) for d in jax.devices()],
+        "converged": int(sum(d["converged"] for d in detail)),
+        "seconds": time.perf_counter() - t0,
+        "trials_detail": detail,
+    }
+
+
+def sweep_csv(doc: dict) -> str:
+    """One row per method, noise level and laser: the RMS errors of the six components."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["method", "noise_px", "laser"] + [f"{c}_rms" for c in COMPONENTS])
+    for m, block in doc["methods"].items():
+        per = block["per_laser"]
+        for li, s in enumerate(doc["noise"]):
+            for laser in range(len(per["x0"])):
+                w.writerow([m, s, laser] + [f"{per[c][laser][li]:.6g}" for c in COMPONENTS])
+    return buf.getvalue()
+
+
+def plot_sweep(doc: dict, path) -> Path:
+    """The paper's Figs. 6–7: RMS error of each component against noise, one curve per laser, bound dashed."""
+    from ..plots import _plt
+
+    plt = _plt()
+    path = Path(path)
+    fig, axs = plt.subplots(2, 3, figsize=(13, 7.5))
+    noise = doc["noise"]
+    joint, bound = doc["methods"]["joint"]["per_laser"], doc["methods"]["bound"]["per_laser"]
+    n = len(joint["x0"])
+    colors = plt.cm.tab10(np.arange(n) % 10)
+    for ax, c in zip(axs.ravel(), COMPONENTS, strict=True):
+        for i in range(n):
+            ax.plot(noise, joint[c][i], "o-", ms=3, lw=1, color=colors[i], label=f"laser {i}")
+            ax.plot(noise, bound[c][i], "--", lw=0.8, color=colors[i])
+        ax.set_xlabel("pixel noise sigma (px)")
+        ax.set_ylabel(f"RMS error of {c}" + (" (mm)" if c.endswith("0") else ""))
+        ax.set_title(c)
+        ax.grid(alpha=0.3)
+    axs[0, 0].legend(fontsize=6, ncol=2)
+    fig.suptitle(f"Joint calibration over {doc['trials']} trials per level (solid) and the Cramer-Rao bound (dashed)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def write_sweep(doc: dict, out_dir) -> list[Path]:
+    """Write ``sweep.json``, ``sweep.csv`` and ``sweep.png`` into ``out_dir``; returns the paths."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(out / "sweep.json", doc)
+    write_text_atomic(out / "sweep.csv", sweep_csv(doc))
+    return [out / "sweep.json", out / "sweep.csv", plot_sweep(doc, out / "sweep.png")]

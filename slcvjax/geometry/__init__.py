@@ -1,0 +1,1 @@
+"""The forward model's geometry: poses, the camera, mirrors of revolution, lasers and the rig."""

@@ -1,0 +1,104 @@
+"""The rig: camera, cone mirror and lasers as one pytree, and its forward model."""
+
+import equinox as eqx
+import jax
+from jaxtyping import Array, Bool, Float
+
+from .camera import Camera, in_image, project
+from .lasers import Lasers, line_plane_intersection
+from .mirror import ConeMirror, project_through_mirror
+from .pose import Pose
+
+CAMERA_DOF = 9
+MIRROR_DOF = 6  # the pose (vertex 3, axis tilt 2) and one of the shape (see the mirrors' retract)
+LASER_DOF = 4
+# the rig's tangent, column by column (:meth:`Rig.retract`'s order; the calibration's covariance
+# and every Jacobian over the rig): the camera (fx, fy, cx, cy, then the distortion, ``slcvjax.observations.formats``'s
+# order), the mirror's vertex (mm), its axis tilt (rad), its shape, then the lasers (laser_columns)
+CAMERA_COLUMNS = slice(0, CAMERA_DOF)
+CAMERA_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+APEX_COLUMNS = slice(CAMERA_DOF, CAMERA_DOF + 3)
+TILT_COLUMNS = slice(CAMERA_DOF + 3, CAMERA_DOF + 5)
+SHAPE_COLUMN = CAMERA_DOF + MIRROR_DOF - 1  # the mirror's shape (a conic's constant)
+POSE_DOF = 6
+
+
+def laser_columns(i: int) -> slice:
+    """Laser ``i``'s four columns in the rig's tangent (:meth:`Rig.retract`'s order: camera,
+    mirror, then the lasers' point offset e1, e2 and direction tilt e1, e2): in the calibration's
+    covariance and in every Jacobian over the rig."""
+    start = CAMERA_DOF + MIRROR_DOF + LASER_DOF * i
+    return slice(start, start + LASER_DOF)
+
+
+class Rig(eqx.Module):
+    """Everything calibrated about the sensor: camera, mirror and lasers.
+
+    ``tangent_dim`` is ``9 + 6 + 4 N``; :meth:`retract` takes a flat increment
+    in the order camera (9), mirror (6: vertex, axis tilt, shape), lasers (N x 4, row-major).
+    """
+
+    camera: Camera
+    mirror: ConeMirror
+    lasers: Lasers
+
+    @property
+    def tangent_dim(self) -> int:
+        return CAMERA_DOF + MIRROR_DOF + LASER_DOF * self.lasers.n
+
+    def retract(self, delta: Float[Array, " d"]) -> "Rig":
+        c, m = CAMERA_DOF, CAMERA_DOF + MIRROR_DOF
+        return Rig(
+            self.camera.retract(delta[:c]),
+            self.mirror.retract(delta[c:m]),
+            self.lasers.retract(delta[m:].reshape(-1, LASER_DOF)),
+        )
+
+
+def project_board_points(
+    rig: Rig, T_cam_board: Pose, points_board: Float[Array, "m 3"], implicit: bool = True
+) -> tuple[Float[Array, "m 2"], Bool[Array, " m"]]:
+    """Pixels of board points seen through the mirror, and their validity."""
+    points_cam = T_cam_board.apply(points_board)
+    res = jax.vmap(lambda p: project_through_mirror(rig.camera, rig.mirror, p, implicit=implicit))(points_cam)
+    return res.uv, res.valid
+
+
+def project_spots(
+    rig: Rig, T_cam_board: Pose, laser_ids: Float[Array, " s"], implicit: bool = True
+) -> tuple[Float[Array, "s 2"], Bool[Array, " s"]]:
+    """Pixels of the spots that the given lasers make on a board's plane (through the mirror)."""
+
+    def one(i):
+        x, ok = line_plane_intersection(rig.lasers.points[i], rig.lasers.directions[i], T_cam_board)
+        res = project_through_mirror(rig.camera, rig.mirror, x, implicit=implicit)
+        return res.uv, ok & res.valid
+
+    return jax.vmap(one)(laser_ids)
+
+
+def project_rim(rig: Rig, angles: Float[Array, " n"]) -> tuple[Float[Array, "n 2"], Bool[Array, " n"]]:
+    """Pixels of rim points (seen directly, not through the mirror)."""
+
+    def one(p):
+        uv, ok = project(rig.camera, p)
+        return uv, ok & in_image(rig.camera, uv)
+
+    return jax.vmap(one)(rig.mirror.rim_points(angles))
+
+
+def project_direct(
+    camera: Camera, T_cam_board: Pose, points_board: Float[Array, "m 3"]
+) -> tuple[Float[Array, "m 2"], Bool[Array, " m"]]:
+    """Pixels of board points seen directly (a mirror-free calibration view)."""
+
+    def one(p):
+        uv, ok = project(camera, p)
+        return uv, ok & in_image(camera, uv)
+
+    return jax.vmap(one)(T_cam_board.apply(points_board))
+
+
+def laser_spot_cam(rig: Rig, laser: int, T_cam_board: Pose) -> tuple[Array, Array]:
+    """3D spot (camera frame) of one laser on a board's plane."""
+    return line_plane_intersection(rig.lasers.points[laser], rig.lasers.directions[laser], T_cam_board)

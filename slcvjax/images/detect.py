@@ -1,0 +1,853 @@
+"""The detector: laser spots, board dots, rim edge pixels and chessboard corners from images.
+
+OpenCV stays here, at the edge.  A catadioptric image is read in two channels:
+green shows the scene (white walls, dark dots; 650 nm laser light barely reaches
+it) and red minus green shows the laser spots.  Steps, per image:
+
+1. **Mirror**: Otsu's threshold on green, the largest bright region with its holes
+   filled is the mirror's disc; an ellipse fitted to its outline gives the image
+   centre used for azimuths (``atan2(v - cv, u - cu)``, degrees, so increasing
+   azimuth turns from +u towards +v) and a first rim.
+2. **Rim**: along rays from that centre, the sub-pixel point where the green
+   profile crosses half-way between the mirror's and the outside's levels.
+3. **Dots**: dark connected regions inside the disc (away from its edge and not
+   the dark centre), each located by its darkness-weighted centroid.
+4. **Spots**: connected regions of red minus green above a threshold, each located
+   by its redness-weighted centroid.
+
+Then, per image, the dots are grouped by azimuth into the boards of the setup
+(each wall target has a nominal azimuth and the directions of its x and y axes
+in the image), and a group is ordered into its grid (rows by image radius,
+columns by azimuth) only when it holds exactly ``cols x rows`` dots.  Across the
+whole folder the spots are labelled with their lasers: the lasers are fixed on
+the sensor, so each one's spots share an azimuth in every image.  Anything
+that cannot be identified without guessing is left out and reported.
+"""
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ..observations.formats import (
+    CalibrationViewObs,
+    FormatError,
+    Observations,
+    SpotObs,
+    ViewObs,
+    _load_json,
+    read_sensor_fields,
+)
+
+SETUP_FORMAT = "slcv-setup/1"
+
+
+# --------------------------------------------------------------------------- setup
+
+
+@dataclass
+class BoardLayout:
+    """A board as the detector knows it.
+
+    Attributes:
+        points: (M, 3) board points, mm, ``z = 0``, ordered x fastest on a ``cols x rows`` grid.
+        cols, rows: the grid's size.
+        azimuth_deg: for a target seen through the mirror, the image azimuth where it is
+            nominally seen (None for a chessboard seen directly).
+        x_dir: +1 if the board's x grows with the image azimuth, -1 if it shrinks.
+        y_dir: +1 if the board's y grows with the distance from the image centre, -1 if it shrinks.
+        dot_radius_mm: the printed dots' radius, when known (for the centroids' correction).
+    """
+
+    points: np.ndarray
+    cols: int
+    rows: int
+    azimuth_deg: float | None = None
+    x_dir: int = 1
+    y_dir: int = 1
+    dot_radius_mm: float | None = None
+
+
+@dataclass
+class Setup:
+    """What a user knows before detection (``slcv-setup/1``): the images and what they show."""
+
+    image_size: tuple[int, int]
+    mirror_radius: float
+    mirror_height: float
+    n_lasers: int
+    boards: dict[str, BoardLayout]
+    views: list[str]
+    chessboard_views: list[tuple[str, str]]
+    laser_azimuth_deg: list[float] | None = None
+    extra: dict = field(default_factory=dict)
+    spot_sigma_mm: float | None = None  # the laser spots' Gaussian std on a surface, when known
+    rigid_boards: list[str] = field(default_factory=list)  # targets fixed to each other (one box)
+
+
+def setup_to_json(setup: Setup) -> dict:
+    """The ``slcv-setup/1`` document of a setup."""
+    boards = {}
+    for name, b in setup.boards.items():
+        d: dict[str, Any] = {"points": np.asarray(b.points, float).tolist(), "cols": b.cols, "rows": b.rows}
+        if b.azimuth_deg is not None:
+            d.update(azimuth_deg=float(b.azimuth_deg), x_dir=int(b.x_dir), y_dir=int(b.y_dir))
+        if b.dot_radius_mm is not None:
+            d["dot_radius_mm"] = float(b.dot_radius_mm)
+        boards[name] = d
+    doc = {
+        "format": SETUP_FORMAT,
+        "image_size": list(setup.image_size),
+        "mirror_shape": {"kind": "cone", "radius": setup.mirror_radius, "height": setup.mirror_height},
+        "n_lasers": setup.n_lasers,
+        "laser_azimuth_deg": None if setup.laser_azimuth_deg is None else [float(a) for a in setup.laser_azimuth_deg],
+        "boards": boards,
+        "views": [{"image": v} for v in setup.views],
+        "chessboard_views": [{"image": im, "board": b} for im, b in setup.chessboard_views],
+    }
+    if setup.spot_sigma_mm is not None:
+        doc["spot_sigma_mm"] = float(setup.spot_sigma_mm)
+    if setup.rigid_boards:
+        doc["rigid_boards"] = list(setup.rigid_boards)
+    doc.update(setup.extra)
+    return doc
+
+
+def read_setup(path: str | Path) -> Setup:
+    """Read and validate ``setup.json`` (raises :class:`FormatError` naming the file, field and index)."""
+    ctx, doc = _load_json(path)
+    fmt = ctx.get(doc, "format", "", str)
+    if fmt != SETUP_FORMAT:
+        ctx.fail("format", f"expected {SETUP_FORMAT!r}, got {fmt!r}")
+    (w, h), radius, height, n_lasers, shape = read_sensor_fields(ctx, doc)
+    if shape is not None:
+        ctx.fail("mirror_shape.kind", f"the detector supports the cone only, got {shape['kind']!r}")
+    az = ctx.get(doc, "laser_azimuth_deg", "", list, optional=True)
+    laser_az = None
+    if az is not None:
+        laser_az = list(ctx.vector(az, n_lasers, "laser_azimuth_deg"))
+    boards = {}
+    for name, b in ctx.get(doc, "boards", "", dict).items():
+        where = f"boards.{name}"
+        pts = ctx.list_of(b, "points", where)
+        if not pts:
+            ctx.fail(f"{where}.points", "a board needs at least one point")
+        arr = np.stack([ctx.vector(p, 3, f"{where}.points[{i}]") for i, p in enumerate(pts)])
+        cols = ctx.integer(ctx.get(b, "cols", where), f"{where}.cols", lo=1)
+        rows = ctx.integer(ctx.get(b, "rows", where), f"{where}.rows", lo=1)
+        if cols * rows != len(arr):
+            ctx.fail(f"{where}.points", f"{len(arr)} points do not make a {cols} x {rows} grid")
+        azimuth = ctx.get(b, "azimuth_deg", where, optional=True)
+        layout = BoardLayout(arr, cols, rows)
+        if azimuth is not None:
+            layout.azimuth_deg = ctx.number(azimuth, f"{where}.azimuth_deg")
+            for key in ("x_dir", "y_dir"):
+                v = ctx.get(b, key, where, optional=True)
+                if v is not None and v not in (1, -1):
+                    ctx.fail(f"{where}.{key}", f"must be 1 or -1, got {json.dumps(v)}")
+                setattr(layout, key, 1 if v is None else int(v))
+        dot_r = ctx.get(b, "dot_radius_mm", where, optional=True)
+        if dot_r is not None:
+            layout.dot_radius_mm = ctx.number(dot_r, f"{where}.dot_radius_mm")
+            if not layout.dot_radius_mm > 0:
+                ctx.fail(f"{where}.dot_radius_mm", f"must be positive, got {json.dumps(dot_r)}")
+        boards[name] = layout
+    views = []
+    for i, v in enumerate(ctx.list_of(doc, "views", "")):
+        views.append(ctx.get(v, "image", f"views[{i}]", str))
+    chess = []
+    for i, v in enumerate(ctx.list_of(doc, "chessboard_views", "", optional=True)):
+        where = f"chessboard_views[{i}]"
+        im = ctx.get(v, "image", where, str)
+        b = ctx.get(v, "board", where, str)
+        if b not in boards:
+            ctx.fail(f"{where}.board", f"unknown board {b!r} (known: {', '.join(sorted(boards)) or 'none'})")
+        chess.append((im, b))
+    if not any(b.azimuth_deg is not None for b in boards.values()) and views:
+        ctx.fail("boards", "no board has an azimuth_deg: the detector cannot tell which target is which")
+    spot_sigma = ctx.get(doc, "spot_sigma_mm", "", optional=True)
+    if spot_sigma is not None:
+        spot_sigma = ctx.number(spot_sigma, "spot_sigma_mm")
+        if not spot_sigma > 0:
+            ctx.fail("spot_sigma_mm", f"must be positive, got {json.dumps(spot_sigma)}")
+    rigid = ctx.get(doc, "rigid_boards", "", list, optional=True) or []
+    for i, b in enumerate(rigid):
+        if b not in boards:
+            ctx.fail(f"rigid_boards[{i}]", f"unknown board {json.dumps(b)} (known: {', '.join(sorted(boards))})")
+    known = {"format", "image_size", "mirror_shape", "n_lasers", "laser_azimuth_deg", "boards", "views"}
+    extra = {k: v for k, v in doc.items() if k not in known | {"chessboard_views", "spot_sigma_mm", "rigid_boards"}}
+    return Setup((w, h), radius, height, n_lasers, boards, views, chess, laser_az, extra, spot_sigma, list(rigid))
+
+
+# --------------------------------------------------------------------------- images
+
+
+def read_image(path: Path, size: tuple[int, int], source: str = "setup.json") -> np.ndarray:
+    """Read a colour image and check its size against ``size`` (from ``source``); raises
+    :class:`FormatError` naming the file."""
+    if not path.is_file():
+        raise FormatError(f"{path}: (file): no such image (listed in {source})")
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise FormatError(f"{path}: (file): not a readable image (truncated or not PNG/JPEG?)")
+    h, w = img.shape[:2]
+    if (w, h) != tuple(size):
+        raise FormatError(f"{path}: (image): size {w}x{h}, {source} says {size[0]}x{size[1]}")
+    return img
+
+
+@dataclass
+class MirrorDisc:
+    """The mirror's disc in an image: ellipse centre (u, v), semi-axes, angle (deg), filled mask."""
+
+    centre: np.ndarray
+    axes: tuple[float, float]
+    angle: float
+    mask: np.ndarray
+    inside_level: float
+    outside_level: float
+
+
+def find_mirror(green: np.ndarray) -> MirrorDisc | None:
+    """The mirror's disc: the largest bright region (Otsu on green) with its holes filled."""
+    g8 = green.astype(np.uint8)
+    if float(green.max()) - float(green.min()) < 20:
+        return None
+    _, bright = cv2.threshold(g8, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(bright, connectivity=8)
+    if n < 2:
+        return None
+    k = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    region = (labels == k).astype(np.uint8)
+    contours, _ = cv2.findContours(region, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    outline = max(contours, key=len)
+    if len(outline) < 20:
+        return None
+    mask = np.zeros_like(region)
+    cv2.drawContours(mask, [outline], -1, 1, thickness=-1)
+    (cu, cv_), (a, b), ang = cv2.fitEllipse(outline)
+    inside = float(np.median(green[region > 0]))
+    outside = float(np.median(green[mask == 0])) if np.any(mask == 0) else 0.0
+    return MirrorDisc(np.array([cu, cv_]), (a / 2, b / 2), ang, mask.astype(bool), inside, outside)
+
+
+def _ellipse_radius(disc: MirrorDisc, theta: np.ndarray) -> np.ndarray:
+    a, b = disc.axes
+    phi = theta - np.radians(disc.angle)
+    return a * b / np.sqrt((b * np.cos(phi)) ** 2 + (a * np.sin(phi)) ** 2)
+
+
+def find_rim(green: np.ndarray, disc: MirrorDisc, n: int = 240, half: float = 6.0) -> np.ndarray:
+    """Sub-pixel rim edge pixels: along ``n`` rays, where green crosses half-way between inside and outside.
+
+    A ray is skipped where the crossing is not unique within ``half`` px of the
+    fitted ellipse (a dark dot near the edge, the image border).
+    """
+    theta = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    r0 = _ellipse_radius(disc, theta)
+    steps = np.arange(-half, half + 1e-9, 0.25)
+    rr = r0[:, None] + steps[None, :]
+    u = (disc.centre[0] + rr * np.cos(theta)[:, None]).astype(np.float32)
+    v = (disc.centre[1] + rr * np.sin(theta)[:, None]).astype(np.float32)
+    h, w = green.shape
+    prof = cv2.remap(green.astype(np.float32), u, v, cv2.INTER_LINEAR, borderValue=-1.0)
+    mid = 0.5 * (disc.inside_level + disc.outside_level)
+    out = []
+    for i in range(n):
+        p = prof[i]
+        if np.any(p < 0) or u[i].min() < 1 or v[i].min() < 1 or u[i].max() > w - 2 or v[i].max() > h - 2:
+            continue
+        above = p > mid
+        cross = np.flatnonzero(above[:-1] & ~above[1:])
+        if len(cross) != 1 or above[1:][cross[0] :].any():
+            continue
+        j = cross[0]
+        if not above[: j + 1].all():
+            continue
+        f = (p[j] - mid) / (p[j] - p[j + 1])
+        r = rr[i, j] + f * 0.25
+        out.append([disc.centre[0] + r * np.cos(theta[i]), disc.centre[1] + r * np.sin(theta[i])])
+    return np.array(out).reshape(-1, 2)
+
+
+def _weighted_centroids(weight: np.ndarray, labels: np.ndarray, ids: list[int], grow: int = 2) -> np.ndarray:
+    """Centroid of ``weight`` over each labelled region grown by ``grow`` px (weights clipped at 0)."""
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow + 1, 2 * grow + 1))
+    out = []
+    for k in ids:
+        ys, xs = np.nonzero(labels == k)
+        y0, y1 = max(ys.min() - grow, 0), min(ys.max() + grow + 1, labels.shape[0])
+        x0, x1 = max(xs.min() - grow, 0), min(xs.max() + grow + 1, labels.shape[1])
+        m = cv2.dilate((labels[y0:y1, x0:x1] == k).astype(np.uint8), kernel).astype(bool)
+        # never take weight from a neighbouring region
+        m &= (labels[y0:y1, x0:x1] == 0) | (labels[y0:y1, x0:x1] == k)
+        wgt = np.where(m, np.clip(weight[y0:y1, x0:x1], 0, None), 0.0)
+        s = wgt.sum()
+        yy, xx = np.mgrid[y0:y1, x0:x1]
+        out.append([(wgt * xx).sum() / s, (wgt * yy).sum() / s])
+    return np.array(out).reshape(-1, 2)
+
+
+DOT_CONTRAST = 0.3  # a dot's pixel: below the wall by this fraction of the wall-to-darkest contrast
+ROW_EVIDENCE = 0.15  # darker than the local wall by this fraction: something lies where a row would
+
+
+def find_dots(green: np.ndarray, disc: MirrorDisc, edge: int = 4, contrast: float = DOT_CONTRAST) -> np.ndarray:
+    """Dark dots inside the mirror's disc: (K, 2) darkness-weighted centroids.
+
+    A pixel is dark when it lies below the wall's level by ``contrast`` of the way to the
+    darkest level (near the apex the cone squeezes a dot into a thin streak that the blur
+    lightens to about half the full contrast). A region counts when it lies at least ``edge`` px
+    inside the disc's outline, is not the image centre's dark body (regions holding the
+    ellipse centre or larger than 2 % of the disc are skipped) and has at least 3 pixels.
+    """
+    wall = disc.inside_level
+    darkest = min(disc.outside_level, float(np.percentile(green[disc.mask], 1)))
+    dark_level = wall - contrast * (wall - darkest)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * edge + 1, 2 * edge + 1))
+    core = cv2.erode(disc.mask.astype(np.uint8), kernel).astype(bool)
+    dark = ((green < dark_level) & disc.mask).astype(np.uint8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(dark, connectivity=8)
+    area_disc = float(disc.mask.sum())
+    cu, cv_ = (int(round(c)) for c in disc.centre)
+    ids = []
+    for k in range(1, n):
+        area = stats[k, cv2.CC_STAT_AREA]
+        if area < 3 or area > 0.02 * area_disc:
+            continue
+        reg = labels == k
+        if not core[reg].all():
+            continue
+        if 0 <= cv_ < labels.shape[0] and 0 <= cu < labels.shape[1] and labels[cv_, cu] == k:
+            continue
+        ids.append(k)
+    return _weighted_centroids(wall - green, labels, ids)
+
+
+def find_spots(bgr: np.ndarray, disc: MirrorDisc, threshold: float = 25.0, edge: int = 2) -> np.ndarray:
+    """Laser spots inside the mirror's disc: (S, 2) centroids.
+
+    Found where red minus green exceeds ``threshold`` grey levels; located by the
+    centroid of red / green - 1, the laser's light relative to the scene's.  That
+    ratio does not depend on the paper's albedo, so a spot partly on a dark dot
+    keeps its centre (a red-minus-green weight would be pulled off it); one with a
+    quarter of its pixels or more on a dot is skipped (the dot hides its profile).  A
+    spot closer than ``edge`` px to the disc's outline is skipped: the rim cuts its
+    image, and its centroid would lie off its centre.
+    """
+    red = bgr[:, :, 2].astype(float) - bgr[:, :, 1].astype(float)
+    red = cv2.GaussianBlur(red, (0, 0), 0.7)
+    mask = ((red > threshold) & disc.mask).astype(np.uint8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    green = bgr[:, :, 1].astype(float)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * edge + 1, 2 * edge + 1))
+    core = cv2.erode(disc.mask.astype(np.uint8), kernel).astype(bool)
+    # a spot mostly on a dark dot is skipped too: the dot hides its profile
+    dark = green < 0.5 * (disc.inside_level + disc.outside_level)
+    ids = []
+    for k in range(1, n):
+        if stats[k, cv2.CC_STAT_AREA] < 2:
+            continue
+        reg = labels == k
+        if core[reg].all() and dark[reg].mean() < 0.25:
+            ids.append(k)
+    # red over green cancels the paper's albedo (a spot half on a dark dot keeps its centre)
+    raw = bgr[:, :, 2].astype(float) / np.maximum(green, 4.0) - 1.0
+    return _weighted_centroids(raw, labels, ids)
+
+
+def azimuth_deg(px: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """Image azimuth (degrees in [0, 360)) of pixels about a centre: ``atan2(v - cv, u - cu)``."""
+    d = np.asarray(px, float).reshape(-1, 2) - centre
+    return np.degrees(np.arctan2(d[:, 1], d[:, 0])) % 360.0
+
+
+def _wrap(a):
+    return (np.asarray(a) + 180.0) % 360.0 - 180.0
+
+
+def _order_grid(
+    px: np.ndarray,
+    centre: np.ndarray,
+    layout: BoardLayout,
+    disc_radius: float | None = None,
+    dead_zone: float = 0.3,
+    rim_margin: float = 25.0,
+    probe=None,
+) -> tuple[np.ndarray, np.ndarray] | str | None:
+    """Place one board's dots on its grid: (pixels (M, 2), seen (M,)); None where they do not
+    form the grid, or a reason where a whole row is missing and the evidence cannot say which.
+
+    Through a cone mirror a wall's columns (lines across the axis's direction)
+    image as nearly radial lines, so the dots are split into ``cols`` azimuth
+    groups (each gap wider than 3x the groups' own spread), and each column is
+    ordered by image radius.  A column with missing dots takes its rows from the
+    fullest columns' radii, interpolated in azimuth; a dot must fall within 0.3
+    row spacings of its row.  One whole missing row is placed only where the evidence says
+    on which side it lies: the fullest columns extended by one row spacing reach inside
+    ``dead_zone`` of the disc's radius (near the apex the image is squeezed and the sensor's
+    own reflection sits) or beyond the rim less ``rim_margin`` px (dots there are cut) on that
+    side only, and ``probe`` (see :func:`_darkness_probe`), when given, finds nothing dark
+    where the row would lie on the other side (a row there, seen but too faint to be
+    detected, would mean the other placement).  Where both sides would be out of sight the
+    image cannot tell which row is missing: nothing is placed, and the reason is returned.
+    """
+    cols, rows = layout.cols, layout.rows
+    split = _columns(px, centre, layout)
+    if split is None:
+        return None
+    groups, a, r = split
+    m = max(len(g) for g in groups)
+    full = [k for k, g in enumerate(groups) if len(g) == m]
+    ref = np.array([r[groups[k]] for k in full])  # (F, m) radii of the fullest columns
+    first = 0
+    if m < rows:  # whole rows missing: only where they would lie out of sight, on one side only
+        if m < 2 or disc_radius is None:
+            return None
+        inner, outer = (ref[:, 0], ref[:, -1]) if layout.y_dir > 0 else (ref[:, -1], ref[:, 0])
+        step = np.abs(np.diff(ref, axis=1))
+        step_in, step_out = (step[:, 0], step[:, -1]) if layout.y_dir > 0 else (step[:, -1], step[:, 0])
+        hidden_in = bool(np.all(inner - step_in < dead_zone * disc_radius))
+        hidden_out = bool(np.all(outer + step_out > disc_radius - rim_margin))
+        if (not hidden_in and not hidden_out) or rows - m > 1:
+            return None
+        if hidden_in and hidden_out:
+            return "a whole row is hidden and either neighbouring row could be it (ambiguous rows)"
+        if probe is not None:
+            # the side said to hold no row must show nothing where one would lie
+            a0 = _circular_mean_deg(azimuth_deg(px, centre))
+            col_az_abs = [a0 + float(np.mean(a[groups[k]])) for k in full]
+            if hidden_in:  # the row beyond the outer one must be absent
+                edge, step_next = outer, step_out
+            else:
+                edge, step_next = inner, -step_in
+            if any(
+                probe(az, r0 + 0.5 * s, r0 + 1.5 * s) for az, r0, s in zip(col_az_abs, edge, step_next, strict=True)
+            ):
+                return "a whole row is missing and the image shows something on both sides (ambiguous rows)"
+        # grid row 0 comes first in the columns' order: it is the inner row when y grows outwards
+        first = 1 if hidden_in == (layout.y_dir > 0) else 0
+    col_az = np.array([np.mean(a[g]) for g in groups])
+    row_r = np.full((len(full), rows), np.nan)
+    row_r[:, first : first + m] = ref
+    present = np.arange(first, first + m)
+    out = np.zeros((rows * cols, 2))
+    seen = np.zeros(rows * cols, bool)
+    for k, g in enumerate(groups):
+        if len(g) == m:
+            rows_of = present
+        else:
+            if len(full) == 1:
+                pred = row_r[0, present]
+            else:
+                fa = col_az[full]
+                o = np.argsort(fa)
+                pred = np.array([np.interp(col_az[k], fa[o], row_r[o, j]) for j in present])
+            spacing = np.min(np.abs(np.diff(pred))) if m > 1 else np.inf
+            near_row = np.array([int(np.argmin(np.abs(pred - r[i]))) for i in g])
+            near = np.abs(pred[near_row] - r[g]) < 0.3 * spacing
+            rows_of = present[near_row]
+            if len(set(rows_of.tolist())) != len(g) or not near.all():
+                return None
+        for i, j in zip(g, rows_of, strict=True):
+            out[j * cols + k] = px[i]
+            seen[j * cols + k] = True
+    return out, seen
+
+
+def _columns(px: np.ndarray, centre: np.ndarray, layout: BoardLayout):
+    """A target's dots split into its columns by azimuth (each gap wider than 3x the groups' own
+    spread), in grid order, each column in grid order of its rows: ``(groups, azimuths
+    relative to their mean, image radii)``, or None."""
+    cols, rows = layout.cols, layout.rows
+    if len(px) < cols or len(px) > cols * rows:
+        return None
+    a = _wrap(azimuth_deg(px, centre) - _circular_mean_deg(azimuth_deg(px, centre)))
+    r = np.linalg.norm(px - centre, axis=1)
+    order = np.argsort(a)
+    gaps = np.diff(a[order])
+    if cols > 1:
+        cut = np.sort(np.argsort(gaps)[-(cols - 1) :])
+        groups = np.split(order, cut + 1)
+        spread = max(float(np.ptp(a[g])) for g in groups)
+        if gaps[cut].min() <= 3.0 * max(spread, 0.2):
+            return None
+    else:
+        groups = [order]
+    if layout.x_dir < 0:
+        groups = groups[::-1]
+    if any(len(g) > rows for g in groups):
+        return None
+    return [g[np.argsort(layout.y_dir * r[g])] for g in groups], a, r
+
+
+MAX_CANDIDATES = 64
+
+
+def candidate_placements(
+    px: np.ndarray, centre: np.ndarray, layout: BoardLayout
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Every placement of a target's dots on its grid that keeps each column's dots in the
+    order of their rows (for a target that cannot be placed from the image alone; the
+    calibration decides among them by the box, :func:`slcvjax.images.centroids.resolve_ambiguous_boards`):
+    ``[(pixels (M, 2), seen (M,)), ...]``; empty where the dots do not split into columns or
+    the choices would exceed ``MAX_CANDIDATES``."""
+    from itertools import combinations, product
+
+    split = _columns(px, centre, layout)
+    if split is None:
+        return []
+    groups = split[0]
+    cols, rows = layout.cols, layout.rows
+    choices = [list(combinations(range(rows), len(g))) for g in groups]
+    if int(np.prod([len(c) for c in choices])) > MAX_CANDIDATES:
+        return []
+    out = []
+    for pick in product(*choices):
+        pix, seen = np.zeros((rows * cols, 2)), np.zeros(rows * cols, bool)
+        for k, (g, rows_of) in enumerate(zip(groups, pick, strict=True)):
+            for i, j in zip(g, rows_of, strict=True):
+                pix[j * cols + k], seen[j * cols + k] = px[i], True
+        out.append((pix, seen))
+    return out
+
+
+def _darkness_probe(green: np.ndarray, disc: MirrorDisc):
+    """``probe(azimuth_deg, r0, r1)``: whether the image is darker than the wall by ``ROW_EVIDENCE``
+    of the dots' contrast anywhere along the radial segment from image radius ``r0`` to ``r1``
+    (within 2 px across it), 4 px or more inside the mirror's disc; the centre's dark body never counts."""
+    wall = disc.inside_level
+    darkest = min(disc.outside_level, float(np.percentile(green[disc.mask], 1)))
+    level = wall - ROW_EVIDENCE * (wall - darkest)
+    core = cv2.erode(disc.mask.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)  # not the rim's edge
+    dark = (green < level) & core
+    # the sensor's own reflection: the dark region holding the disc's centre, and a margin round it
+    n, labels = cv2.connectedComponents(dark.astype(np.uint8), connectivity=8)
+    cu, cv_ = (int(round(c)) for c in disc.centre)
+    if 0 <= cv_ < dark.shape[0] and 0 <= cu < dark.shape[1] and labels[cv_, cu] > 0:
+        body = cv2.dilate((labels == labels[cv_, cu]).astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
+        dark &= ~body
+    h, w = dark.shape
+
+    def probe(az_deg: float, r0: float, r1: float) -> bool:
+        lo, hi = sorted((max(r0, 0.0), max(r1, 0.0)))
+        th = np.radians(az_deg)
+        e, n_ = np.array([np.cos(th), np.sin(th)]), np.array([-np.sin(th), np.cos(th)])
+        for r in np.arange(lo, hi + 0.5, 0.5):
+            for off in (-2.0, -1.0, 0.0, 1.0, 2.0):
+                u, v = disc.centre + r * e + off * n_
+                iu, iv = int(round(u)), int(round(v))
+                if 0 <= iv < h and 0 <= iu < w and dark[iv, iu]:
+                    return True
+        return False
+
+    return probe
+
+
+def _split_by_azimuth(az: np.ndarray, k: int) -> list[np.ndarray]:
+    """Split points on the circle into ``k`` groups at the ``k`` largest gaps (indices per group)."""
+    if len(az) == 0 or k < 1:
+        return []
+    order = np.argsort(az)
+    s = az[order]
+    gaps = (np.roll(s, -1) - s) % 360.0
+    if len(s) == 1:
+        return [order]
+    cut = np.sort(np.argsort(gaps)[-min(k, len(s)) :])
+    groups = []
+    for i in range(len(cut)):
+        a, b = cut[i - 1] + 1, cut[i] + 1
+        idx = np.arange(a, b) if i > 0 else np.r_[np.arange(cut[-1] + 1, len(s)), np.arange(0, b)]
+        groups.append(order[idx % len(s)])
+    return [g for g in groups if len(g)]
+
+
+@dataclass
+class ImageDetection:
+    """What one catadioptric image showed: the disc, rim pixels, dot and spot centroids."""
+
+    name: str
+    disc: MirrorDisc | None
+    rim: np.ndarray
+    dots: np.ndarray
+    spots: np.ndarray
+    green: np.ndarray | None = None  # the image's green channel, for evidence where dots were not found
+
+
+def detect_catadioptric(bgr: np.ndarray, name: str = "") -> ImageDetection:
+    """Rim pixels, dot centroids and spot centroids of one catadioptric image (unlabelled)."""
+    green = bgr[:, :, 1].astype(float)
+    disc = find_mirror(green)
+    if disc is None:
+        return ImageDetection(name, None, np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2)))
+    return ImageDetection(name, disc, find_rim(green, disc), find_dots(green, disc), find_spots(bgr, disc), green)
+
+
+def label_boards(
+    det: ImageDetection, setup: Setup, candidates: dict | None = None
+) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], list[str]]:
+    """Group one image's dots into the setup's wall targets and order each grid; returns (boards, problems).
+
+    A target left out (ambiguous rows, or dots that do not fit the grid) gets its possible
+    placements (:func:`candidate_placements`) in ``candidates[name]`` when a dict is given."""
+    walls = {k: b for k, b in setup.boards.items() if b.azimuth_deg is not None}
+    problems: list[str] = []
+    out = {k: (np.zeros((len(b.points), 2)), np.zeros(len(b.points), bool)) for k, b in walls.items()}
+    if det.disc is None or len(det.dots) == 0:
+        return out, problems
+    az = azimuth_deg(det.dots, det.disc.centre)
+    groups = _split_by_azimuth(az, len(walls))
+    names = list(walls)
+    nominal = np.array([walls[k].azimuth_deg for k in names])
+    means = [_circular_mean_deg(az[g]) for g in groups]
+    assign = [int(np.argmin(np.abs(_wrap(m - nominal)))) for m in means]
+    used: dict[int, int] = {}
+    for gi, j in enumerate(assign):
+        name = names[j]
+        d = abs(float(_wrap(means[gi] - nominal[j])))
+        if j in used or d > 45.0:
+            problems.append(f"{len(groups[gi])} dots near azimuth {means[gi] % 360:.0f} deg match no single target")
+            continue
+        used[j] = gi
+        probe = None if det.green is None else _darkness_probe(det.green, det.disc)
+        got = _order_grid(
+            det.dots[groups[gi]], det.disc.centre, walls[name], float(np.mean(det.disc.axes)), probe=probe
+        )
+        if isinstance(got, str) or got is None:
+            why = got if isinstance(got, str) else f"{len(groups[gi])} dots could not be placed on the grid"
+            problems.append(f"{name}: {why}; board left out")
+            if candidates is not None:
+                placed = candidate_placements(det.dots[groups[gi]], det.disc.centre, walls[name])
+                if len(placed) > 1:
+                    candidates[name] = placed
+            continue
+        px, seen = got
+        out[name] = (px, seen)
+        if not seen.all():
+            problems.append(f"{name}: {int(seen.sum())} of {len(seen)} dots found")
+    for j, name in enumerate(names):
+        if j not in used and not any(name in p for p in problems):
+            problems.append(f"{name}: not found")
+    return out, problems
+
+
+def _spot_board(az: float, wall_az: dict[str, float], margin: float) -> str | None:
+    """The wall target nearest in azimuth, or None within ``margin`` deg of the bisector of the two nearest."""
+    if not wall_az:
+        return None
+    d = sorted((abs(float(_wrap(az - a))), b) for b, a in wall_az.items())
+    if len(d) > 1 and d[1][0] - d[0][0] < 2 * margin:
+        return None
+    return d[0][1]
+
+
+def label_spots(
+    dets: list[ImageDetection],
+    setup: Setup,
+    boards_seen: list[dict[str, tuple[np.ndarray, np.ndarray]]],
+    corner_margin: float = 15.0,
+) -> tuple[list[list[SpotObs]], list[list[str]]]:
+    """Label every image's spots with their laser and their board; returns spots and problems per image.
+
+    Laser azimuths come from ``setup.laser_azimuth_deg`` when given; otherwise the
+    spots of all images are split into ``n_lasers`` azimuth clusters and laser ``k``
+    is the ``k``-th cluster by increasing azimuth, counted from the one nearest 0 deg.
+    A spot's board is the wall target whose dots' mean azimuth (in its image, else the
+    nominal one) is nearest; within ``corner_margin`` deg of the bisector of two
+    targets the spot may lie on either wall (where the corner falls depends on the
+    sensor's position), so its board is left null: the calibration puts it on the
+    first board plane its reflected ray meets, once the boards' poses are known.
+    """
+    n = setup.n_lasers
+    problems: list[list[str]] = [[] for _ in dets]
+    spots_out: list[list[SpotObs]] = [[] for _ in dets]
+    all_az, owner = [], []
+    for i, d in enumerate(dets):
+        if d.disc is None:
+            continue
+        for j, a in enumerate(azimuth_deg(d.spots, d.disc.centre)):
+            all_az.append(a)
+            owner.append((i, j))
+    if n == 0 or not all_az:
+        return spots_out, problems
+    all_az = np.array(all_az)
+    if setup.laser_azimuth_deg is not None:
+        centres = np.asarray(setup.laser_azimuth_deg, float) % 360.0
+    else:
+        groups = _split_by_azimuth(all_az, n)
+        centres = np.array([_circular_mean_deg(all_az[g]) % 360 for g in groups])
+        if len(centres) < n:
+            for i in range(len(dets)):
+                problems[i].append(f"the spots form {len(centres)} azimuth groups for {n} lasers; none labelled")
+            return spots_out, problems
+        start = int(np.argmin(np.abs(_wrap(centres))))
+        centres = np.roll(np.sort(centres), -int(np.searchsorted(np.sort(centres), centres[start])))
+    spacing = np.min(np.abs(_wrap(centres[:, None] - centres[None, :])) + 360 * np.eye(n)) if n > 1 else 360.0
+    label = np.full(len(all_az), -1)
+    for k, a in enumerate(all_az):
+        d = np.abs(_wrap(a - centres))
+        j = int(np.argmin(d))
+        if d[j] < 0.5 * spacing:
+            label[k] = j
+    walls = {k: b for k, b in setup.boards.items() if b.azimuth_deg is not None}
+    for i, d in enumerate(dets):
+        if d.disc is None:
+            continue
+        idx = [k for k, (o, _) in enumerate(owner) if o == i]
+        lab = label[idx]
+        wall_az = {}
+        for name, layout in walls.items():
+            px, seen = boards_seen[i][name]
+            wall_az[name] = (
+                _circular_mean_deg(azimuth_deg(px[seen], d.disc.centre)) if seen.any() else layout.azimuth_deg
+            )
+        for k, li in zip(idx, lab, strict=True):
+            j = owner[k][1]
+            px = d.spots[j]
+            if li < 0:
+                problems[i].append(f"spot at ({px[0]:.1f}, {px[1]:.1f}) matches no laser's azimuth; left out")
+                continue
+            if np.sum(lab == li) > 1:
+                problems[i].append(f"laser {li}: {int(np.sum(lab == li))} spots; left out")
+                continue
+            board = _spot_board(all_az[k], wall_az, corner_margin)
+            spots_out[i].append(SpotObs(int(li), board, px.copy()))
+        found = {s.laser for s in spots_out[i]}
+        missing = [str(k) for k in range(n) if k not in found]
+        if missing:
+            problems[i].append(f"no spot for laser {', '.join(missing)}")
+    return spots_out, problems
+
+
+def detect_chessboard(bgr: np.ndarray, cols: int, rows: int) -> np.ndarray | None:
+    """Inner corners (cols*rows, 2) of a chessboard seen directly, ordered x fastest, or None."""
+    grey = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)
+    ok, corners = cv2.findChessboardCorners(
+        grey, (cols, rows), flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+    )
+    if not ok:
+        return None
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-4)
+    corners = cv2.cornerSubPix(grey, corners, (5, 5), (-1, -1), crit)
+    return corners.reshape(-1, 2).astype(float)
+
+
+@dataclass
+class DetectionReport:
+    """Per image, what could not be found (empty lists where all was found)."""
+
+    problems: dict[str, list[str]]
+    counts: dict[str, dict[str, int]]
+
+    def lines(self) -> list[str]:
+        out = []
+        for name, c in self.counts.items():
+            desc = ", ".join(f"{v} {k}" for k, v in c.items())
+            probs = self.problems.get(name, [])
+            out.append(f"{name}: {desc}" + (f"; {'; '.join(probs)}" if probs else ""))
+        return out
+
+    def summary(self) -> str:
+        """One line: how many images had problems, and how often each kind of problem came up."""
+        probs = [p for ps in self.problems.values() for p in ps]
+        kinds = {
+            "boards left out": sum("board left out" in p for p in probs),
+            "ambiguous rows": sum("ambiguous rows" in p for p in probs),
+            "missing spots": sum(p.count(",") + 1 for p in probs if p.startswith("no spot for laser")),
+            "spots left out": sum(p.endswith("left out") and ("spot" in p) for p in probs),
+        }
+        with_problems = sum(1 for ps in self.problems.values() if ps)
+        listed = ", ".join(f"{v} {k}" for k, v in kinds.items() if v)
+        return f"{with_problems} of {len(self.counts)} images with something not found" + (
+            f" ({listed})" if listed else ""
+        )
+
+
+def detect_folder(folder: str | Path, progress: bool = False) -> tuple[Observations, DetectionReport]:
+    """Detect everything in an image folder described by its ``setup.json``.
+
+    Returns ``slcv-observations/1`` content and a report of what was not found.
+    Raises :class:`FormatError` for a bad ``setup.json``, a missing, unreadable,
+    wrongly sized or blank image (naming the file).
+    """
+    folder = Path(folder)
+    setup = read_setup(folder / "setup.json")
+    problems: dict[str, list[str]] = {}
+    counts: dict[str, dict[str, int]] = {}
+    cal_views = []
+    items = [(im, b) for im, b in setup.chessboard_views]
+    it = _progress(items + [(v, None) for v in setup.views], progress, "detect")
+    images = {}
+    for im, _ in it:
+        img = read_image(folder / im, setup.image_size)
+        if int(img.max()) - int(img.min()) < 10:
+            raise FormatError(f"{folder / im}: (image): blank image (no contrast)")
+        images[im] = img
+    for im, b in items:
+        layout = setup.boards[b]
+        corners = detect_chessboard(images[im], layout.cols, layout.rows)
+        name = Path(im).stem
+        if corners is None:
+            problems[name] = [f"no {layout.cols}x{layout.rows} chessboard found"]
+            counts[name] = {"corners": 0}
+            continue
+        counts[name] = {"corners": len(corners)}
+        cal_views.append(CalibrationViewObs(name, b, corners, np.ones(len(corners), bool)))
+    dets = [detect_catadioptric(images[v], Path(v).stem) for v in setup.views]
+    boards_seen, board_probs, ambiguous = [], [], []
+    for v, d in enumerate(dets):
+        cands: dict = {}
+        bs, pr = label_boards(d, setup, cands)
+        boards_seen.append(bs)
+        board_probs.append(pr)
+        for b, placed in cands.items():
+            options = [{"pixels": px[sn].tolist(), "indices": np.flatnonzero(sn).tolist()} for px, sn in placed]
+            ambiguous.append({"view": v, "board": b, "candidates": options})
+    spots, spot_probs = label_spots(dets, setup, boards_seen)
+    views = []
+    for d, bs, bp, sp, spp in zip(dets, boards_seen, board_probs, spots, spot_probs, strict=True):
+        p = ([] if d.disc is not None else ["no mirror found"]) + bp + spp
+        if p:
+            problems[d.name] = p
+        counts[d.name] = {
+            "dots": int(sum(s.sum() for _, s in bs.values())),
+            "spots": len(sp),
+            "rim pixels": len(d.rim),
+        }
+        views.append(ViewObs(d.name, bs, sp, d.rim))
+    obs = Observations(
+        image_size=setup.image_size,
+        mirror_radius=setup.mirror_radius,
+        mirror_height=setup.mirror_height,
+        n_lasers=setup.n_lasers,
+        boards={k: np.asarray(b.points, float) for k, b in setup.boards.items()},
+        calibration_views=cal_views,
+        views=views,
+        extra={
+            "detection": {
+                "folder": str(folder),
+                "problems": problems,
+                "dot_radius_mm": {k: b.dot_radius_mm for k, b in setup.boards.items() if b.dot_radius_mm},
+                "spot_sigma_mm": setup.spot_sigma_mm,
+                "ambiguous_boards": ambiguous,
+            },
+            **({"rigid_boards": list(setup.rigid_boards)} if setup.rigid_boards else {}),
+        },
+    )
+    return obs, DetectionReport(problems, counts)
+
+
+def _progress(items, enabled: bool, desc: str):
+    if not enabled:
+        return items
+    from tqdm import tqdm
+
+    return tqdm(items, desc=desc, unit="image", leave=False)
+
+
+def _circular_mean_deg(a: np.ndarray) -> float:
+    return float(math.degrees(np.angle(np.exp(1j * np.radians(a)).mean())))

@@ -1,0 +1,447 @@
+"""The renderer: ray-traced images of a simulated scene, through the mirror and directly.
+
+Every pixel is split into ``supersample x supersample`` samples.  A catadioptric
+sample is undistorted, its ray meets the cone (:func:`back_project`, closed form),
+and the reflected ray is followed to the first wall of the box: the wall is
+white paper with black dots (the board points), a laser spot adds red light with
+a Gaussian profile around the point where its beam meets the wall, and a ray that
+comes back to the sensor's own body (a dark cylinder from the camera to just
+below the apex) is dark: the camera's reflection at the image centre.  A sample
+that misses the mirror sees the dim background, which draws the rim's edge.  A
+direct sample meets the chessboard's plane: black and white squares with a white
+margin.  Samples are averaged (anti-aliasing), then optical blur, exposure,
+Gaussian sensor noise and 8-bit quantisation are applied.
+
+Radiances are linear in [0, 1]; the laser is pure red (650 nm light does not reach
+the green and blue channels), so the detector finds dots in green and spots in
+red against green.  Images are BGR ``uint8`` arrays, OpenCV's layout.
+"""
+
+from dataclasses import dataclass
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..geometry.camera import Camera, pixel_to_ray
+from ..geometry.lasers import line_plane_intersection
+from ..geometry.mirror import ConeMirror, back_project, body_clearance
+from ..geometry.pose import Pose
+from .pipe import beam_pipe_point
+
+WALL = 0.72
+DOT = 0.06
+BACKGROUND = 0.12
+BODY = 0.03
+MIRROR_REFLECTANCE = 0.92
+CHESS_BLACK = 0.05
+CHESS_WHITE = 0.85
+CHESS_SURROUND = 0.35
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    """How images are rendered.
+
+    Attributes:
+        supersample: samples per pixel along each axis (anti-aliasing).
+        noise: std of the Gaussian sensor noise in grey levels (0-255).
+        blur: std of the Gaussian optical blur in pixels (0: none).
+        exposure: gain on the radiance before quantisation (1: white paper at ~184 of 255).
+        dot_radius_mm: radius of the printed dots on the walls.
+        spot_sigma_mm: std of the laser spot's Gaussian profile on the wall.
+        spot_power: peak red radiance of a spot on white paper (it saturates above 1).
+        body_radius_mm: radius of the sensor's body around the mirror axis (its dark reflection).
+        body_gap_mm: the body ends this far before the apex, along the axis.
+        seed: seed of the sensor noise.
+    """
+
+    supersample: int = 3
+    noise: float = 1.0
+    blur: float = 0.6
+    exposure: float = 1.0
+    dot_radius_mm: float = 1.6
+    spot_sigma_mm: float = 0.8
+    spot_power: float = 0.9
+    body_radius_mm: float = 12.0
+    body_gap_mm: float = 8.0
+    seed: int = 0
+
+    def __post_init__(self):
+        checks = {
+            "supersample": self.supersample >= 1,
+            "noise": self.noise >= 0,
+            "blur": self.blur >= 0,
+            "exposure": self.exposure > 0,
+            "dot_radius_mm": self.dot_radius_mm > 0,
+            "spot_sigma_mm": self.spot_sigma_mm > 0,
+            "spot_power": self.spot_power >= 0,
+            "body_radius_mm": self.body_radius_mm >= 0,
+        }
+        for name, ok in checks.items():
+            if not ok or not np.isfinite(getattr(self, name)):
+                raise ValueError(f"render option {name} has an invalid value {getattr(self, name)!r}")
+
+
+def _sample_grid(width: int, height: int, ss: int) -> jnp.ndarray:
+    """Sub-pixel sample positions (OpenCV pixel centres at integers) of an image, (h, w, ss*ss, 2)."""
+    off = (np.arange(ss) + 0.5) / ss - 0.5
+    v = np.arange(height)[:, None, None] + np.repeat(off, ss)[None, None, :]
+    u = np.arange(width)[None, :, None] + np.tile(off, ss)[None, None, :]
+    u, v = np.broadcast_arrays(u, v)
+    return jnp.asarray(np.stack([u, v], axis=-1), dtype=float)
+
+
+def _wall_hit(origin, direction, walls_R, walls_t):
+    """Nearest wall ahead of a ray: (wall index, hit?, board-frame xy, camera-frame point)."""
+
+    def one(R, t):
+        x, ok = line_plane_intersection(origin, direction, Pose(R, t))
+        return x, jnp.where(ok, jnp.dot(x - origin, direction), jnp.inf)
+
+    xs, lam = jax.vmap(one)(walls_R, walls_t)
+    w = jnp.argmin(lam)
+    hit = jnp.isfinite(lam[w])
+    x = xs[w]
+    local = walls_R[w].T @ (x - walls_t[w])
+    return w, hit, local[:2], x
+
+
+def _body_hit(origin, direction, mirror: ConeMirror, radius, gap):
+    """Does the ray meet the top face of the sensor's body (a disc across the axis, ``gap`` before the apex)?"""
+    return body_clearance(origin, direction, mirror, radius, gap) < 0.0
+
+
+def _cata_ray(cam, mirror, uv, body_radius, body_gap):
+    """The reflected ray of one sample, and whether it is seen (meets the mirror, misses the body)."""
+    ray = back_project(cam, mirror, uv)
+    body = _body_hit(ray.point, ray.direction, mirror, body_radius, body_gap)
+    return ray.point, ray.direction, ray.valid, ray.valid & ~body
+
+
+def _cata_shade(origin, direction, valid, seen, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts):
+    w, hit, xy, x = _wall_hit(origin, direction, walls_R, walls_t)
+    d2 = jnp.min(jnp.sum((dots[w] - xy) ** 2, axis=1))
+    albedo = jnp.where(d2 < opts[0] ** 2, DOT, WALL)
+    s2 = jnp.min(jnp.where(spot_on & (spot_wall == w), jnp.sum((spots - x) ** 2, axis=1), jnp.inf))
+    laser = jnp.exp(-0.5 * jnp.minimum(s2, 1e6) / opts[1] ** 2)  # spots lie far apart: the nearest one
+    seen = seen & hit
+    grey = MIRROR_REFLECTANCE * albedo
+    red = grey + MIRROR_REFLECTANCE * albedo / WALL * opts[2] * laser
+    mirror_px = jnp.where(valid, BODY, BACKGROUND)
+    g = jnp.where(seen, grey, mirror_px)
+    r = jnp.where(seen, red, mirror_px)
+    return jnp.stack([g, g, r])  # BGR
+
+
+def _pipe_shade(origin, direction, valid, seen, centre, axis, radius, spots, spot_on, opts):
+    """A sample inside a pipe: its inner wall is plain paper-white, lit by the laser spots."""
+    x, hit = beam_pipe_point(origin, direction, centre, axis, radius)
+    s2 = jnp.min(jnp.where(spot_on, jnp.sum((spots - x) ** 2, axis=1), jnp.inf))
+    laser = jnp.exp(-0.5 * jnp.minimum(s2, 1e6) / opts[1] ** 2)
+    seen = seen & hit
+    grey = MIRROR_REFLECTANCE * WALL
+    red = grey + MIRROR_REFLECTANCE * opts[2] * laser
+    mirror_px = jnp.where(valid, BODY, BACKGROUND)
+    g = jnp.where(seen, grey, mirror_px)
+    r = jnp.where(seen, red, mirror_px)
+    return jnp.stack([g, g, r])  # BGR
+
+
+def _chess_sample(d, ok, R, t, cols, rows, square):
+    x, ahead = line_plane_intersection(jnp.zeros(3), d, Pose(R, t))
+    xy = (R.T @ (x - t))[:2]
+    i = jnp.floor(xy[0] / square)
+    j = jnp.floor(xy[1] / square)
+    inside = (xy[0] >= -square) & (xy[0] < cols * square) & (xy[1] >= -square) & (xy[1] < rows * square)
+    margin = (xy[0] >= -2 * square) & (xy[0] < (cols + 1) * square) & (xy[1] >= -2 * square)
+    margin = margin & (xy[1] < (rows + 1) * square)
+    black = jnp.mod(i + j, 2) == 0
+    val = jnp.where(inside, jnp.where(black, CHESS_BLACK, CHESS_WHITE), jnp.where(margin, CHESS_WHITE, CHESS_SURROUND))
+    val = jnp.where(ok & ahead, val, CHESS_SURROUND)
+    return jnp.stack([val, val, val])
+
+
+@jax.jit
+def _cata_rays(cam, mirror, samples, body):
+    f = jax.vmap(lambda uv: _cata_ray(cam, mirror, uv, body[0], body[1]))
+    return jax.lax.map(f, samples)
+
+
+@jax.jit
+def _cata_band(rays, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts):
+    f = lambda o, d, v, s: _cata_shade(o, d, v, s, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts)  # noqa: E731
+    return jax.lax.map(lambda r: jax.vmap(f)(*r), rays)
+
+
+@jax.jit
+def _pipe_band(rays, centre, axis, radius, spots, spot_on, opts):
+    f = lambda o, d, v, s: _pipe_shade(o, d, v, s, centre, axis, radius, spots, spot_on, opts)  # noqa: E731
+    return jax.lax.map(lambda r: jax.vmap(f)(*r), rays)
+
+
+@jax.jit
+def _camera_rays(cam, samples):
+    return jax.lax.map(jax.vmap(lambda uv: pixel_to_ray(cam, uv)), samples)
+
+
+@jax.jit
+def _chess_band(rays, R, t, grid):
+    f = lambda d, ok: _chess_sample(d, ok, R, t, grid[0], grid[1], grid[2])  # noqa: E731
+    return jax.lax.map(lambda r: jax.vmap(f)(*r), rays)
+
+
+CHUNK = 32768
+
+
+def _chunked_samples(width: int, height: int, ss: int) -> tuple[jnp.ndarray, int]:
+    """Every sample of an image, padded and split into chunks: (n_chunks, CHUNK, 2), and the true count."""
+    samples = _sample_grid(width, height, ss).reshape(-1, 2)
+    n = samples.shape[0]
+    pad = (-n) % CHUNK
+    samples = jnp.concatenate([samples, jnp.zeros((pad, 2))]) if pad else samples
+    return samples.reshape(-1, CHUNK, 2), n
+
+
+def _finish(radiance: np.ndarray, opts: RenderOptions, seed: int) -> np.ndarray:
+    """Blur, exposure, sensor noise and quantisation of a linear radiance image (H, W, 3)."""
+    img = radiance * opts.exposure * 255.0
+    if opts.blur > 0:
+        img = cv2.GaussianBlur(img, (0, 0), opts.blur)
+    if opts.noise > 0:
+        img = img + np.random.default_rng(seed).normal(0.0, opts.noise, img.shape)
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+class Renderer:
+    """Renders the images of one rig: the rays of every sample are traced once, then each view is shaded.
+
+    The camera's rays and their reflections in the mirror do not depend on where
+    the sensor is, so they are computed at construction (about a second for a
+    640x480 camera at 3x3 samples); a view then costs its wall intersections and
+    shading only.
+    """
+
+    def __init__(self, camera: Camera, mirror: ConeMirror | None, opts: RenderOptions = RenderOptions()):
+        self.camera, self.mirror, self.opts = camera, mirror, opts
+        ss = opts.supersample
+        self._samples, self._n = _chunked_samples(camera.width, camera.height, ss)
+        self._rays = None
+        if mirror is not None:
+            body = jnp.asarray([opts.body_radius_mm, opts.body_gap_mm], dtype=float)
+            self._rays = _cata_rays(camera, mirror, self._samples, body)
+        self._chess_rays = None
+
+    def _average(self, out) -> np.ndarray:
+        h, w, ss = self.camera.height, self.camera.width, self.opts.supersample
+        flat = np.asarray(out).reshape(-1, 3)[: self._n]
+        return flat.reshape(h, w, ss * ss, 3).mean(axis=2)
+
+    def catadioptric(
+        self,
+        walls: dict[str, Pose],
+        boards: dict[str, np.ndarray],
+        spots: list[tuple[str, np.ndarray]],
+        seed: int = 0,
+    ) -> np.ndarray:
+        """One catadioptric image (BGR uint8, ``height x width``).
+
+        Args:
+            walls: ``T_cam_board`` of every wall (each an infinite plane ``z = 0`` of its board frame).
+            boards: each wall's dot centres in its board frame (M, 3), mm.
+            spots: each visible laser spot's wall and 3D point (camera frame, mm).
+            seed: seed of this image's sensor noise.
+        """
+        if self._rays is None:
+            raise ValueError("this renderer has no mirror; it renders direct views only")
+        names = list(walls)
+        if not names:
+            raise ValueError("a catadioptric image needs at least one wall")
+        walls_R = jnp.stack([walls[b].R for b in names])
+        walls_t = jnp.stack([walls[b].t for b in names])
+        m = max(len(boards[b]) for b in names)
+        dots = np.full((len(names), max(m, 1), 2), 1e9)
+        for i, b in enumerate(names):
+            dots[i, : len(boards[b])] = np.asarray(boards[b])[:, :2]
+        n_spots = max(len(spots), 1)
+        spot_xyz = np.full((n_spots, 3), 1e9)
+        spot_wall = np.full(n_spots, -1)
+        for i, (b, x) in enumerate(spots):
+            spot_xyz[i], spot_wall[i] = x, names.index(b)
+        o = self.opts
+        opts = jnp.asarray([o.dot_radius_mm, o.spot_sigma_mm, o.spot_power], dtype=float)
+        out = _cata_band(
+            self._rays, walls_R, walls_t, jnp.asarray(dots), jnp.asarray(spot_xyz),
+            jnp.asarray(spot_wall), jnp.asarray(spot_wall >= 0), opts,
+        )  # fmt: skip
+        return _finish(self._average(out), o, seed)
+
+    def pipe(self, centre, axis, radius: float, spots: np.ndarray, seed: int = 0) -> np.ndarray:
+        """One catadioptric image from inside a straight pipe (BGR uint8): the pipe's axis through
+        ``centre`` along the unit ``axis`` (camera frame, mm), its inner ``radius`` (mm), and the
+        laser spots' 3D points on its wall (S, 3)."""
+        if self._rays is None:
+            raise ValueError("this renderer has no mirror; it renders direct views only")
+        spots = np.asarray(spots, float).reshape(-1, 3)
+        spot_xyz = np.full((max(len(spots), 1), 3), 1e9)
+        spot_xyz[: len(spots)] = spots
+        o = self.opts
+        opts = jnp.asarray([o.dot_radius_mm, o.spot_sigma_mm, o.spot_power], dtype=float)
+        out = _pipe_band(
+            self._rays, jnp.asarray(centre, float), jnp.asarray(axis, float), jnp.asarray(float(radius)),
+            jnp.asarray(spot_xyz), jnp.arange(len(spot_xyz)) < len(spots), opts,
+        )  # fmt: skip
+        return _finish(self._average(out), o, seed)
+
+    def chessboard(self, T_cam_board: Pose, cols: int, rows: int, square: float, seed: int = 0) -> np.ndarray:
+        """One direct chessboard image (BGR uint8): ``cols x rows`` inner corners at ``(i, j) * square``, mm."""
+        if self.camera.telecentric:
+            raise ValueError("chessboard: direct views are rendered for a perspective camera only")
+        if self._chess_rays is None:
+            self._chess_rays = _camera_rays(self.camera, self._samples)
+        grid = jnp.asarray([cols, rows, square], dtype=float)
+        out = _chess_band(self._chess_rays, T_cam_board.R, T_cam_board.t, grid)
+        return _finish(self._average(out), self.opts, seed)
+
+
+def _grid_shape(points: np.ndarray) -> tuple[int, int]:
+    """(cols, rows) of a regular grid of board points ordered x fastest."""
+    cols = len(np.unique(np.round(points[:, 0], 6)))
+    rows = len(np.unique(np.round(points[:, 1], 6)))
+    if cols * rows != len(points):
+        raise ValueError(f"board points ({len(points)}) are not a regular grid ({cols} x {rows})")
+    return cols, rows
+
+
+def scene_setup(scene, image_names: list[str], chess_names: list[str]):
+    """The ``slcv-setup/1`` content of a simulated scene: what its user would know before detection.
+
+    Each wall target's nominal azimuth and axis directions in the image come from
+    the exact projections of view 0 (a user reads them off the first image, or from
+    the box's drawing); the lasers are numbered by the detector's convention
+    (by increasing azimuth from the one nearest 0 deg), which the presets follow.
+    """
+    from ..geometry.rig import project_board_points, project_rim
+    from .detect import BoardLayout, Setup, _circular_mean_deg, azimuth_deg
+
+    rig = scene.rig
+    ruv, rok = project_rim(rig, jnp.linspace(0, 2 * np.pi, 64, endpoint=False))
+    centre = np.asarray(ruv)[np.asarray(rok)].mean(axis=0)
+    boards = {}
+    for name, pts in scene.boards.items():
+        cols, rows = _grid_shape(pts)
+        layout = BoardLayout(np.asarray(pts, float), cols, rows)
+        if name != scene.chess_board and len(scene.box_poses):
+            uv, ok = project_board_points(rig, scene.box_poses[0][name], jnp.asarray(pts))
+            uv, ok = np.asarray(uv), np.asarray(ok)
+            if ok.any():
+                az = azimuth_deg(uv[ok], centre)
+                layout.azimuth_deg = _circular_mean_deg(az) % 360
+            grid_uv = uv.reshape(rows, cols, 2)
+            if cols > 1:
+                d = (azimuth_deg(grid_uv[:, 1], centre) - azimuth_deg(grid_uv[:, 0], centre) + 180) % 360 - 180
+                layout.x_dir = 1 if np.nanmedian(d) > 0 else -1
+            if rows > 1:
+                r = np.linalg.norm(grid_uv - centre, axis=-1)
+                layout.y_dir = 1 if np.nanmedian(r[1] - r[0]) > 0 else -1
+        boards[name] = layout
+    return Setup(
+        image_size=(rig.camera.width, rig.camera.height),
+        mirror_radius=float(rig.mirror.radius),
+        mirror_height=float(rig.mirror.height),
+        n_lasers=rig.lasers.n,
+        boards=boards,
+        views=image_names,
+        chessboard_views=[(c, scene.chess_board) for c in chess_names],
+        extra={"simulation": dict(scene.info)},
+    )
+
+
+def _cone_only(mirror) -> None:
+    if not isinstance(mirror, ConeMirror):
+        raise ValueError(f"rendering supports the cone mirror only, not a {type(mirror).__name__}")
+
+
+def render_scene(scene, out_dir, opts: RenderOptions = RenderOptions(), progress: bool = False) -> list[str]:
+    """Render every view of a simulated scene into ``out_dir`` with its ``setup.json``; returns the files.
+
+    One PNG per catadioptric view (``view00.png``, ...) and per direct chessboard
+    view (``chess00.png``, ...).  Image ``k`` of a kind gets noise seed ``opts.seed + k``
+    (chessboard images ``+ 1000``).  The cone mirror only (its setup's ``mirror_shape``).
+    """
+    from pathlib import Path
+
+    _cone_only(scene.rig.mirror)
+
+    from ..observations.formats import write_json_atomic
+    from ..observations.simulate import visible_spots
+    from .detect import setup_to_json
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rig = scene.rig
+    renderer = Renderer(rig.camera, rig.mirror, opts)
+    walls = [b for b in scene.boards if b != scene.chess_board]
+    cols, rows = _grid_shape(scene.boards[scene.chess_board])
+    square = float(scene.boards[scene.chess_board][1, 0] - scene.boards[scene.chess_board][0, 0])
+    names, chess_names = [], []
+    jobs = [("view", i) for i in range(len(scene.box_poses))] + [("chess", j) for j in range(len(scene.chess_poses))]
+    if progress:
+        from tqdm import tqdm
+
+        jobs = tqdm(jobs, desc="render", unit="image", leave=False)
+    for kind, i in jobs:
+        if kind == "view":
+            spots = [(w, x) for _, w, x, _ in visible_spots(scene, i)]
+            img = renderer.catadioptric({b: scene.box_poses[i][b] for b in walls}, scene.boards, spots, opts.seed + i)
+            name = f"view{i:02d}.png"
+            names.append(name)
+        else:
+            img = renderer.chessboard(scene.chess_poses[i], cols, rows, square, opts.seed + 1000 + i)
+            name = f"chess{i:02d}.png"
+            chess_names.append(name)
+        if not cv2.imwrite(str(out / name), img):
+            raise OSError(f"{out / name}: could not write the image")
+    setup = scene_setup(scene, names, chess_names)
+    # what a user knows of the printed targets and the lasers
+    for b in setup.boards.values():
+        if b.azimuth_deg is not None:
+            b.dot_radius_mm = opts.dot_radius_mm
+    setup.spot_sigma_mm = opts.spot_sigma_mm
+    setup.rigid_boards = [k for k, b in setup.boards.items() if b.azimuth_deg is not None]  # the box's walls
+    write_json_atomic(out / "setup.json", setup_to_json(setup))
+    return names + chess_names
+
+
+def render_pipe(scene, out_dir, opts: RenderOptions = RenderOptions(), progress: bool = False) -> list[str]:
+    """Render every pose of a pipe scene (:class:`slcvjax.images.pipe.PipeScene`) into ``out_dir``: one PNG per
+    pose (``pipe00.png``, ...), image ``k`` with noise seed ``opts.seed + k``; returns the names.
+
+    The pipe's inner wall is the only surface; every beam lights its spot where it meets the
+    wall.  No setup is written: the spots are labelled by a calibration's laser lines when
+    measured (``slcvjax measure CAL IMAGE_DIR``).
+    """
+    _cone_only(scene.rig.mirror)
+    from pathlib import Path
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rig = scene.rig
+    renderer = Renderer(rig.camera, rig.mirror, opts)
+    hit = jax.jit(jax.vmap(beam_pipe_point, in_axes=(0, 0, None, None, None)))
+    poses = range(len(scene.centers))
+    if progress:
+        from tqdm import tqdm
+
+        poses = tqdm(poses, desc="render pipe", unit="image", leave=False)
+    names = []
+    for i in poses:
+        x, ok = hit(rig.lasers.points, rig.lasers.directions, scene.centers[i], scene.axes[i], scene.diameter / 2)
+        spots = np.asarray(x)[np.asarray(ok)]
+        img = renderer.pipe(scene.centers[i], scene.axes[i], scene.diameter / 2, spots, opts.seed + i)
+        name = f"pipe{i:02d}.png"
+        if not cv2.imwrite(str(out / name), img):
+            raise OSError(f"{out / name}: could not write the image")
+        names.append(name)
+    return names

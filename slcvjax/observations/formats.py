@@ -1,0 +1,530 @@
+"""The public file formats ``slcv-observations/1`` and ``slcv-calibration/1`` (DESIGN section 3).
+
+Readers validate everything and raise :class:`FormatError` with a one-line
+message naming the file, the field and the index (``obs.json: views[3].spots[2].laser:
+...``).  Writers are atomic: the file is written beside its target and renamed
+into place, so a failure never leaves a half-written file.  Extra fields are
+kept in ``extra`` and ignored.
+"""
+
+import json
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+
+from ..geometry.camera import Camera
+from ..geometry.lasers import Lasers
+from ..geometry.mirror import mirror_of_shape, shape_json
+from ..geometry.pose import Pose
+from ..geometry.rig import Rig
+
+OBSERVATIONS_FORMAT = "slcv-observations/1"
+CALIBRATION_FORMAT = "slcv-calibration/1"
+
+
+class FormatError(ValueError):
+    """Bad input file: the message names the file, the field and the index."""
+
+
+# --------------------------------------------------------------------------- validation helpers
+
+
+class _Ctx:
+    def __init__(self, path: str):
+        self.path = path
+
+    def fail(self, where: str, msg: str):
+        raise FormatError(f"{self.path}: {where}: {msg}")
+
+    def get(self, obj: Any, key: str, where: str, kind: type | tuple = object, optional: bool = False):
+        if not isinstance(obj, dict):
+            self.fail(where or "(top level)", f"expected an object, got {type(obj).__name__}")
+        full = f"{where}.{key}" if where else key
+        if key not in obj or obj[key] is None:
+            if optional:
+                return None
+            self.fail(full, "missing")
+        val = obj[key]
+        if kind is not object and not isinstance(val, kind):
+            names = kind.__name__ if isinstance(kind, type) else "/".join(k.__name__ for k in kind)
+            self.fail(full, f"expected {names}, got {type(val).__name__}")
+        return val
+
+    def number(self, val: Any, where: str) -> float:
+        if isinstance(val, bool) or not isinstance(val, (int, float)):
+            self.fail(where, f"expected a number, got {json.dumps(val)[:40]}")
+        if not math.isfinite(val):
+            self.fail(where, f"non-finite number {val}")
+        return float(val)
+
+    def positive(self, val: Any, where: str) -> float:
+        x = self.number(val, where)
+        if x <= 0.0:
+            self.fail(where, f"must be positive, got {x:g}")
+        return x
+
+    def integer(self, val: Any, where: str, lo: int | None = None, hi: int | None = None) -> int:
+        if isinstance(val, bool) or not isinstance(val, int):
+            self.fail(where, f"expected an integer, got {json.dumps(val)[:40]}")
+        if lo is not None and val < lo:
+            self.fail(where, f"{val} is out of range (minimum {lo})")
+        if hi is not None and val >= hi:
+            self.fail(where, f"{val} is out of range [0, {hi})")
+        return val
+
+    def vector(self, val: Any, n: int, where: str) -> np.ndarray:
+        if not isinstance(val, list) or len(val) != n:
+            got = f"length {len(val)}" if isinstance(val, list) else type(val).__name__
+            self.fail(where, f"expected a list of {n} numbers, got {got}")
+        return np.array([self.number(v, f"{where}[{i}]") for i, v in enumerate(val)])
+
+    def matrix(self, val: Any, rows: int, cols: int, where: str) -> np.ndarray:
+        if not isinstance(val, list) or len(val) != rows:
+            self.fail(where, f"expected {rows} rows of {cols} numbers")
+        return np.stack([self.vector(r, cols, f"{where}[{i}]") for i, r in enumerate(val)])
+
+    def list_of(self, obj: Any, key: str, where: str, optional: bool = False) -> list:
+        val = self.get(obj, key, where, list, optional=optional)
+        return [] if val is None else val
+
+
+def _load_json(path: str | os.PathLike) -> tuple[_Ctx, Any]:
+    ctx = _Ctx(str(path))
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        ctx.fail("(file)", "no such file")
+    except (OSError, UnicodeDecodeError) as e:
+        ctx.fail("(file)", f"cannot read: {e}")
+    try:
+        return ctx, json.loads(text)
+    except json.JSONDecodeError as e:
+        ctx.fail("(file)", f"not valid JSON ({e.msg} at line {e.lineno} column {e.colno}; truncated?)")
+
+
+def _check_format(ctx: _Ctx, doc: Any, expected: str):
+    fmt = ctx.get(doc, "format", "", str)
+    if fmt != expected:
+        ctx.fail("format", f"expected {expected!r}, got {fmt!r}")
+
+
+def write_text_atomic(path: str | os.PathLike, text: str) -> None:
+    """Write a text file atomically (temporary file beside the target, then rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def write_json_atomic(path: str | os.PathLike, doc: Any) -> None:
+    """Write JSON atomically (temporary file beside the target, then rename); rejects NaN."""
+    write_text_atomic(path, json.dumps(doc, indent=1, allow_nan=False) + "\n")
+
+
+# --------------------------------------------------------------------------- observations
+
+
+@dataclass
+class CalibrationViewObs:
+    """A direct (mirror-free) chessboard view: pixels (M, 2) and which are seen (M,)."""
+
+    name: str
+    board: str
+    pixels: np.ndarray
+    seen: np.ndarray
+
+
+@dataclass
+class SpotObs:
+    """One laser spot: the laser index, the board whose plane it lies on (or None), the pixel."""
+
+    laser: int
+    board: str | None
+    pixel: np.ndarray
+
+
+@dataclass
+class ViewObs:
+    """A catadioptric view: per board the pixels (M, 2) and seen mask (M,), spots, rim pixels (R, 2)."""
+
+    name: str
+    boards: dict[str, tuple[np.ndarray, np.ndarray]]
+    spots: list[SpotObs]
+    rim: np.ndarray
+
+
+@dataclass
+class Observations:
+    """Everything a calibration consumes (``slcv-observations/1``)."""
+
+    image_size: tuple[int, int]
+    mirror_radius: float
+    mirror_height: float
+    n_lasers: int
+    boards: dict[str, np.ndarray]
+    calibration_views: list[CalibrationViewObs]
+    views: list[ViewObs]
+    extra: dict = field(default_factory=dict)
+    # the mirror's shape (``slcvjax.geometry.mirror.shape_json``'s form) where it is not the cone of
+    # ``mirror_radius`` and ``mirror_height`` (the rim circle's radius and sag, for every kind)
+    mirror_shape: dict | None = None
+    # ``perspective`` (a pinhole) or ``telecentric`` (orthographic: see ``slcvjax.geometry.camera``)
+    camera_projection: str = "perspective"
+
+
+PROJECTIONS = ("perspective", "telecentric")
+
+
+def _pixels(ctx: _Ctx, val: Any, n: int, where: str) -> tuple[np.ndarray, np.ndarray]:
+    if not isinstance(val, list):
+        ctx.fail(where, f"expected a list of {n} pixels, got {type(val).__name__}")
+    if len(val) != n:
+        ctx.fail(where, f"{len(val)} pixels for a board of {n} points")
+    px = np.zeros((n, 2))
+    seen = np.zeros(n, dtype=bool)
+    for i, p in enumerate(val):
+        if p is None:
+            continue
+        px[i] = ctx.vector(p, 2, f"{where}[{i}]")
+        seen[i] = True
+    return px, seen
+
+
+def shape_keys(kind: str) -> list[str]:
+    """The dimensions a conic mirror of ``kind`` is given by (``auto``: none)."""
+    if kind == "auto":
+        return []
+    if kind == "asphere":
+        return ["vertex_radius", "radius", "conic_constant", "coefficients"]
+    return ["vertex_radius", "radius"] + (["conic_constant"] if kind in ("hyperboloid", "ellipsoid") else [])
+
+
+def shape_missing(shape: dict | None) -> list[str]:
+    """The dimensions a (conic) ``mirror_shape`` leaves out; none for a cone (None)."""
+    return [] if shape is None else [k for k in shape_keys(shape["kind"]) if k not in shape]
+
+
+def read_shape(ctx: "_Ctx", shape: Any, where: str, partial: bool = False) -> tuple[float, float, dict | None]:
+    """A mirror's shape (``mirror_shape``, or a calibration's ``mirror``): the rim's radius and
+    sag, and the shape (None for a cone).  ``kind``: cone (``radius``, ``height``), sphere or
+    paraboloid (``vertex_radius``, ``radius``), hyperboloid or ellipsoid (those and
+    ``conic_constant``), asphere (those and ``coefficients``).  ``partial`` (observations): a
+    conic mirror's dimensions may be left out, for a calibration from views through the mirror
+    alone (the vertex radius is then the scale's gauge, ``slcvjax.calibration.central.GAUGE_VERTEX_RADIUS``, the
+    conic constant is estimated and the rim bounds nothing); the rim's radius and sag are then 0
+    where not known."""
+    from ..geometry.mirror import MIRROR_KINDS, mirror_of_shape
+
+    kind = ctx.get(shape, "kind", where, str)
+    if partial and kind == "auto":  # the kind chosen by held-out views (``slcvjax.calibration.calibrate.calibrate``)
+        auto: dict = {"kind": "auto"}
+        if "vertex_radius" in shape:
+            auto["vertex_radius"] = ctx.positive(shape["vertex_radius"], f"{where}.vertex_radius")
+        return 0.0, 0.0, auto
+    if kind not in MIRROR_KINDS:
+        known = ", ".join(MIRROR_KINDS + (("auto",) if partial else ()))
+        ctx.fail(f"{where}.kind", f"unknown mirror kind {kind!r} (known: {known})")
+    if kind == "cone":
+        radius = ctx.positive(ctx.get(shape, "radius", where), f"{where}.radius")
+        return radius, ctx.positive(ctx.get(shape, "height", where), f"{where}.height"), None
+    out: dict = {"kind": kind}
+    keys = shape_keys(kind)
+    for key in keys:
+        if partial and key not in shape:
+            continue
+        val = ctx.get(shape, key, where)
+        if key == "coefficients":
+            if not isinstance(val, list):
+                ctx.fail(f"{where}.{key}", f"expected a list of numbers, got {type(val).__name__}")
+            out[key] = [ctx.number(v, f"{where}.{key}[{i}]") for i, v in enumerate(val)]
+        elif key == "conic_constant":
+            out[key] = ctx.number(val, f"{where}.{key}")
+        else:
+            out[key] = ctx.positive(val, f"{where}.{key}")
+    if kind == "asphere" and shape_missing(out):
+        ctx.fail(f"{where}.{shape_missing(out)[0]}", "an asphere is given by all its dimensions (none is estimated)")
+    if shape_missing(out):  # dimensions left out: checked where they are estimated
+        return out.get("radius", 0.0), 0.0, out
+    try:
+        mirror = mirror_of_shape(out, [0.0, 0.0, 1.0], [0.0, 0.0, 1.0])
+    except ValueError as e:
+        ctx.fail(where, str(e))
+    return out["radius"], float(mirror.height), out
+
+
+def read_sensor_fields(ctx: _Ctx, doc: Any) -> tuple[tuple[int, int], float, float, int, dict | None]:
+    """``image_size``, ``mirror_shape`` (the rim's radius and sag, and the shape: None for a
+    cone) and ``n_lasers``, shared by the input formats."""
+    size = ctx.get(doc, "image_size", "", list)
+    if len(size) != 2:
+        ctx.fail("image_size", f"expected [width, height], got {len(size)} values")
+    w = ctx.integer(size[0], "image_size[0]", lo=1)
+    h = ctx.integer(size[1], "image_size[1]", lo=1)
+    radius, height, shape = read_shape(ctx, ctx.get(doc, "mirror_shape", "", dict), "mirror_shape", partial=True)
+    n_lasers = ctx.integer(ctx.get(doc, "n_lasers", ""), "n_lasers", lo=0)
+    return (w, h), radius, height, n_lasers, shape
+
+
+def read_observations(path: str | os.PathLike) -> Observations:
+    """Read and validate a ``slcv-observations/1`` file (raises :class:`FormatError`)."""
+    ctx, doc = _load_json(path)
+    _check_format(ctx, doc, OBSERVATIONS_FORMAT)
+    units = ctx.get(doc, "units", "", str, optional=True)
+    if units is not None and units != "mm":
+        ctx.fail("units", f"expected 'mm', got {units!r}")
+    (w, h), radius, height, n_lasers, shape = read_sensor_fields(ctx, doc)
+    projection = ctx.get(doc, "camera_projection", "", str, optional=True) or "perspective"
+    if projection not in PROJECTIONS:
+        ctx.fail("camera_projection", f"expected one of {', '.join(PROJECTIONS)}, got {projection!r}")
+
+    boards_doc = ctx.get(doc, "boards", "", dict)
+    boards: dict[str, np.ndarray] = {}
+    for name, b in boards_doc.items():
+        where = f"boards.{name}"
+        pts = ctx.list_of(b, "points", where)
+        if not pts:
+            ctx.fail(f"{where}.points", "a board needs at least one point")
+        arr = np.stack([ctx.vector(p, 3, f"{where}.points[{i}]") for i, p in enumerate(pts)])
+        bad = np.flatnonzero(np.abs(arr[:, 2]) > 1e-9)
+        if bad.size:
+            ctx.fail(f"{where}.points[{bad[0]}][2]", f"board points must have z = 0, got {arr[bad[0], 2]:g}")
+        boards[name] = arr
+
+    def board_points(name: Any, where: str) -> np.ndarray:
+        if not isinstance(name, str) or name not in boards:
+            ctx.fail(where, f"unknown board {json.dumps(name)} (known: {', '.join(sorted(boards)) or 'none'})")
+        return boards[name]
+
+    cal_views = []
+    for i, v in enumerate(ctx.list_of(doc, "calibration_views", "", optional=True)):
+        where = f"calibration_views[{i}]"
+        name = ctx.get(v, "name", where, str)
+        board = ctx.get(v, "board", where, str)
+        pts = board_points(board, f"{where}.board")
+        px, seen = _pixels(ctx, ctx.get(v, "pixels", where), len(pts), f"{where}.pixels")
+        cal_views.append(CalibrationViewObs(name, board, px, seen))
+
+    views = []
+    for i, v in enumerate(ctx.list_of(doc, "views", "")):
+        where = f"views[{i}]"
+        name = ctx.get(v, "name", where, str)
+        vb = ctx.get(v, "boards", where, dict, optional=True) or {}
+        per_board = {}
+        for bname, pix in vb.items():
+            pts = board_points(bname, f"{where}.boards.{bname}")
+            per_board[bname] = _pixels(ctx, pix, len(pts), f"{where}.boards.{bname}")
+        spots = []
+        for j, s in enumerate(ctx.list_of(v, "spots", where, optional=True)):
+            sw = f"{where}.spots[{j}]"
+            laser = ctx.integer(ctx.get(s, "laser", sw), f"{sw}.laser", lo=0, hi=n_lasers)
+            board = ctx.get(s, "board", sw, optional=True)
+            if board is not None:
+                board_points(board, f"{sw}.board")
+            spots.append(SpotObs(laser, board, ctx.vector(ctx.get(s, "pixel", sw), 2, f"{sw}.pixel")))
+        rim_doc = ctx.list_of(v, "rim", where, optional=True)
+        rim = np.zeros((len(rim_doc), 2))
+        for j, p in enumerate(rim_doc):
+            rim[j] = ctx.vector(p, 2, f"{where}.rim[{j}]")
+        views.append(ViewObs(name, per_board, spots, rim))
+
+    known = {
+        "format",
+        "units",
+        "image_size",
+        "mirror_shape",
+        "n_lasers",
+        "boards",
+        "calibration_views",
+        "views",
+        "camera_projection",
+    }
+    extra = {k: v for k, v in doc.items() if k not in known}
+    return Observations((w, h), radius, height, n_lasers, boards, cal_views, views, extra, shape, projection)
+
+
+def _px_list(px: np.ndarray, seen: np.ndarray) -> list:
+    return [[float(p[0]), float(p[1])] if s else None for p, s in zip(px, seen, strict=True)]
+
+
+def observations_to_json(obs: Observations) -> dict:
+    """The ``slcv-observations/1`` document of an :class:`Observations`."""
+    doc = {
+        "format": OBSERVATIONS_FORMAT,
+        "units": "mm",
+        "image_size": [int(obs.image_size[0]), int(obs.image_size[1])],
+        "mirror_shape": obs.mirror_shape or {"kind": "cone", "radius": obs.mirror_radius, "height": obs.mirror_height},
+        "n_lasers": int(obs.n_lasers),
+        **({} if obs.camera_projection == "perspective" else {"camera_projection": obs.camera_projection}),
+        "boards": {n: {"points": np.asarray(p, float).tolist()} for n, p in obs.boards.items()},
+        "calibration_views": [
+            {"name": v.name, "board": v.board, "pixels": _px_list(v.pixels, v.seen)} for v in obs.calibration_views
+        ],
+        "views": [
+            {
+                "name": v.name,
+                "boards": {b: _px_list(px, seen) for b, (px, seen) in v.boards.items()},
+                "spots": [
+                    {"laser": int(s.laser), "board": s.board, "pixel": [float(s.pixel[0]), float(s.pixel[1])]}
+                    for s in v.spots
+                ],
+                "rim": np.asarray(v.rim, float).reshape(-1, 2).tolist(),
+            }
+            for v in obs.views
+        ],
+    }
+    doc.update(obs.extra)
+    return doc
+
+
+def write_observations(path: str | os.PathLike, obs: Observations) -> None:
+    """Write ``slcv-observations/1`` atomically."""
+    write_json_atomic(path, observations_to_json(obs))
+
+
+# --------------------------------------------------------------------------- calibration
+
+
+@dataclass
+class Calibration:
+    """A calibrated rig with its board poses (``slcv-calibration/1``).
+
+    ``board_poses[i][board]`` is ``T_cam_board`` in view ``i``;
+    ``calibration_view_poses[j]`` is ``T_cam_board`` of direct view ``j`` (or None).
+    ``extra`` holds ``uncertainty``, ``residuals``, ``stages`` and unknown fields.
+    """
+
+    rig: Rig
+    board_poses: list[dict[str, Pose]] = field(default_factory=list)
+    calibration_view_poses: list[Pose | None] | None = None
+    extra: dict = field(default_factory=dict)
+
+
+def _pose_json(p: Pose) -> dict:
+    return {"R": np.asarray(p.R, float).tolist(), "t": np.asarray(p.t, float).tolist()}
+
+
+def _read_pose(ctx: _Ctx, val: Any, where: str) -> Pose:
+    r = ctx.matrix(ctx.get(val, "R", where), 3, 3, f"{where}.R")
+    t = ctx.vector(ctx.get(val, "t", where), 3, f"{where}.t")
+    if np.abs(r.T @ r - np.eye(3)).max() > 1e-6 or np.linalg.det(r) < 0:
+        ctx.fail(f"{where}.R", "not a rotation matrix (R^T R != I or det < 0)")
+    return Pose(jnp.asarray(r), jnp.asarray(t))
+
+
+def _unit(ctx: _Ctx, v: np.ndarray, where: str) -> np.ndarray:
+    n = np.linalg.norm(v)
+    if n < 1e-12:
+        ctx.fail(where, "zero vector")
+    return v / n
+
+
+def calibration_to_json(cal: Calibration) -> dict:
+    """The ``slcv-calibration/1`` document of a :class:`Calibration` (camera only where the rig has no mirror)."""
+    rig = cal.rig
+    cam, mir, las = rig.camera, rig.mirror, rig.lasers
+    doc: dict[str, Any] = {
+        "format": CALIBRATION_FORMAT,
+        "camera": {
+            "width": cam.width,
+            "height": cam.height,
+            "K": np.asarray(cam.K, float).tolist(),
+            "dist": np.asarray(cam.dist, float).tolist(),
+            **({"projection": "telecentric", "unit_mm": cam.unit} if cam.telecentric else {}),
+        },
+    }
+    if mir is None:  # a camera-only calibration (``slcvjax camera``)
+        doc.update(cal.extra)
+        return doc
+    doc.update(
+        {
+            "mirror": shape_json(mir)
+            | {
+                "apex": np.asarray(mir.apex, float).tolist(),
+                "axis": np.asarray(mir.axis, float).tolist(),
+            },
+            "lasers": [
+                {"point": p.tolist(), "direction": d.tolist()}
+                for p, d in zip(np.asarray(las.points, float), np.asarray(las.directions, float), strict=True)
+            ],
+            "board_poses": [{b: _pose_json(p) for b, p in view.items()} for view in cal.board_poses],
+        }
+    )
+    if cal.calibration_view_poses is not None:
+        doc["calibration_view_poses"] = [None if p is None else _pose_json(p) for p in cal.calibration_view_poses]
+    doc.update(cal.extra)
+    return doc
+
+
+def write_calibration(path: str | os.PathLike, cal: Calibration) -> None:
+    """Write ``slcv-calibration/1`` atomically."""
+    write_json_atomic(path, calibration_to_json(cal))
+
+
+def read_calibration(path: str | os.PathLike) -> Calibration:
+    """Read and validate a ``slcv-calibration/1`` file (raises :class:`FormatError`).
+
+    A file with a camera only (from ``slcvjax camera``) gives a rig whose
+    mirror and lasers are absent: ``rig.mirror`` is None and ``rig.lasers`` has 0 lines.
+    """
+    ctx, doc = _load_json(path)
+    _check_format(ctx, doc, CALIBRATION_FORMAT)
+    c = ctx.get(doc, "camera", "", dict)
+    w = ctx.integer(ctx.get(c, "width", "camera"), "camera.width", lo=1)
+    h = ctx.integer(ctx.get(c, "height", "camera"), "camera.height", lo=1)
+    K = ctx.matrix(ctx.get(c, "K", "camera"), 3, 3, "camera.K")
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        ctx.fail("camera.K", "focal lengths must be positive")
+    dist = ctx.vector(ctx.get(c, "dist", "camera"), 5, "camera.dist")
+    projection = ctx.get(c, "projection", "camera", str, optional=True) or "perspective"
+    if projection not in PROJECTIONS:
+        ctx.fail("camera.projection", f"expected one of {', '.join(PROJECTIONS)}, got {projection!r}")
+    unit = 1.0
+    if projection == "telecentric":
+        unit = float(ctx.number(ctx.get(c, "unit_mm", "camera"), "camera.unit_mm"))
+        if not unit > 0:
+            ctx.fail("camera.unit_mm", f"must be positive, got {unit:g}")
+    cam = Camera.create(K[0, 0], K[1, 1], K[0, 2], K[1, 2], dist, w, h, projection == "telecentric", unit)
+
+    m = ctx.get(doc, "mirror", "", dict, optional=True)
+    mirror = None
+    if m is not None:
+        radius, height, shape = read_shape(ctx, m, "mirror")
+        apex = ctx.vector(ctx.get(m, "apex", "mirror"), 3, "mirror.apex")
+        axis = _unit(ctx, ctx.vector(ctx.get(m, "axis", "mirror"), 3, "mirror.axis"), "mirror.axis")
+        mirror = mirror_of_shape(shape, apex, axis, radius, height)
+
+    pts, dirs = [], []
+    for i, las in enumerate(ctx.list_of(doc, "lasers", "", optional=True)):
+        pts.append(ctx.vector(ctx.get(las, "point", f"lasers[{i}]"), 3, f"lasers[{i}].point"))
+        d = ctx.vector(ctx.get(las, "direction", f"lasers[{i}]"), 3, f"lasers[{i}].direction")
+        dirs.append(_unit(ctx, d, f"lasers[{i}].direction"))
+    lasers = Lasers.create(np.reshape(pts, (-1, 3)), np.reshape(dirs, (-1, 3)))
+
+    board_poses = []
+    for i, view in enumerate(ctx.list_of(doc, "board_poses", "", optional=True)):
+        if not isinstance(view, dict):
+            ctx.fail(f"board_poses[{i}]", "expected an object of board poses")
+        board_poses.append({b: _read_pose(ctx, p, f"board_poses[{i}].{b}") for b, p in view.items()})
+
+    cvp = None
+    if doc.get("calibration_view_poses") is not None:
+        cvp = [
+            None if p is None else _read_pose(ctx, p, f"calibration_view_poses[{i}]")
+            for i, p in enumerate(ctx.list_of(doc, "calibration_view_poses", ""))
+        ]
+    known = {"format", "camera", "mirror", "lasers", "board_poses", "calibration_view_poses"}
+    extra = {k: v for k, v in doc.items() if k not in known}
+    return Calibration(Rig(cam, mirror, lasers), board_poses, cvp, extra)  # type: ignore[arg-type]

@@ -1,0 +1,412 @@
+"""Observations packed into flat arrays, padded to shape buckets, and the vectorised residuals.
+
+A :class:`Packed` problem lists every observation once with the index of the pose it
+depends on, so the residuals of any number of views, boards and lasers are one
+``vmap`` (no Python loop in the traced graph).
+
+**Shape buckets.**  A compiled function is compiled once per shape of its arguments, so
+every array that enters one is padded to a bucket size (:func:`bucket`: a coarse ladder
+for the joint problem and the staged stages' maps, which visit only the real rows, see
+:meth:`Layout.of` and :func:`map_rows`; powers of two where every row is visited), and
+the padding is masked out exactly: ``Packed.counts`` holds the real number of dots,
+spots, rim pixels and chessboard corners, the padded rows come after the real ones and
+are never counted (no cost, no weight, no Jacobian, no degree of freedom), and padded
+pose blocks have no observation and a zero freeze mask.  Datasets whose sizes fall in the
+same buckets share every compilation.  :class:`Layout` records the real and padded sizes
+of a problem and maps results back (:meth:`Layout.unpad_params`, ...).
+"""
+
+import dataclasses
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float, Int
+
+from ..geometry.lasers import line_plane_intersection
+from ..geometry.mirror import project_through_mirror
+from ..geometry.pose import Pose
+from ..geometry.rig import Rig
+from .formats import Observations
+
+
+class Packed(eqx.Module):
+    """Flat observation arrays of a calibration.
+
+    Attributes:
+        dot_pose: (D,) index into the board poses of each dot seen through the mirror.
+        dot_points: (D, 3) the dot in its board's frame.
+        dot_pixels: (D, 2) its observed pixel.
+        spot_pose: (S,) board pose index of each spot's plane.
+        spot_laser: (S,) laser index of each spot.
+        spot_pixels: (S, 2) observed pixels.
+        rim_pixels: (R, 2) rim edge pixels of all views (the mirror is fixed to the camera).
+        chess_pose: (C,) index into the direct-view poses of each chessboard corner.
+        chess_points: (C, 3) the corner in its board's frame.
+        chess_pixels: (C, 2) its observed pixel.
+        counts: (4,) how many dots, spots, rim pixels and corners are real; the rows after
+            them are padding (see the module docstring).
+        pose_keys: ``(view index, board name)`` of each board pose (static).
+        chess_keys: index of the calibration view of each direct-view pose (static).
+        dot_src: ``(view index, board name, dot index)`` of each dot row (static; empty
+            where the rows come from elsewhere than :func:`pack`).
+        spot_src: ``(view index, spot index in the view)`` of each spot row (static, likewise).
+        pair_block: None, or for the rigid box model (:mod:`slcvjax.calibration.rigid`) the pose block of each
+            board pose of ``pose_keys`` (its view's sensor pose, or its own for a board outside
+            the box); the rows' ``dot_pose`` / ``spot_pose`` still index the board poses.
+        pair_box: with ``pair_block``, each board pose's board in the box (an index into
+            ``Params.box``; the length of ``Params.box`` for the gauge board and the boards outside
+            the box: no box pose, the identity).
+    """
+
+    dot_pose: Int[Array, " D"]
+    dot_points: Float[Array, "D 3"]
+    dot_pixels: Float[Array, "D 2"]
+    spot_pose: Int[Array, " S"]
+    spot_laser: Int[Array, " S"]
+    spot_pixels: Float[Array, "S 2"]
+    rim_pixels: Float[Array, "R 2"]
+    chess_pose: Int[Array, " C"]
+    chess_points: Float[Array, "C 3"]
+    chess_pixels: Float[Array, "C 2"]
+    counts: Int[Array, "4"]
+    pose_keys: tuple = eqx.field(static=True)
+    chess_keys: tuple = eqx.field(static=True)
+    dot_src: tuple = eqx.field(static=True, default=())
+    spot_src: tuple = eqx.field(static=True, default=())
+    pair_block: Int[Array, " P"] | None = None
+    pair_box: Int[Array, " P"] | None = None
+
+    @property
+    def n_poses(self) -> int:
+        """The number of board poses (``pose_keys``)."""
+        return len(self.pose_keys)
+
+    @property
+    def n_pose_blocks(self) -> int:
+        """The number of the joint problem's board pose blocks: one per board pose, or with the
+        rigid box model one per view and one per board pose outside the box."""
+        if self.pair_block is None:
+            return self.n_poses
+        return int(np.max(np.asarray(self.pair_block), initial=-1)) + 1
+
+    @property
+    def n_chess(self) -> int:
+        return len(self.chess_keys)
+
+    def arrays(self) -> "Packed":
+        """The arrays alone, unpadded (no static keys): for a compiled function of this problem's own sizes."""
+        return dataclasses.replace(self, pose_keys=(), chess_keys=(), dot_src=(), spot_src=())
+
+    def select(self, keep_dots, keep_spots, spot_laser=None) -> "Packed":
+        """The problem with only the dots and spots where ``keep_dots`` / ``keep_spots`` (bool,
+        over the real rows) hold, and the spots' laser labels replaced by ``spot_laser`` (over
+        the real rows, before the selection) where given.  Host arrays, keys kept."""
+        n_d, n_s = int(self.counts[0]), int(self.counts[1])
+        kd, ks = np.asarray(keep_dots, bool), np.asarray(keep_spots, bool)
+        if kd.shape != (n_d,) or ks.shape != (n_s,):
+            raise ValueError(f"select: masks of {n_d} dots and {n_s} spots expected, got {kd.shape} and {ks.shape}")
+        labels = np.asarray(self.spot_laser)[:n_s] if spot_laser is None else np.asarray(spot_laser, np.int64)
+        c = np.asarray(self.counts).copy()
+        c[:2] = kd.sum(), ks.sum()
+        return dataclasses.replace(
+            self,
+            dot_pose=np.asarray(self.dot_pose)[:n_d][kd],
+            dot_points=np.asarray(self.dot_points)[:n_d][kd],
+            dot_pixels=np.asarray(self.dot_pixels)[:n_d][kd],
+            spot_pose=np.asarray(self.spot_pose)[:n_s][ks],
+            spot_laser=labels[ks],
+            spot_pixels=np.asarray(self.spot_pixels)[:n_s][ks],
+            counts=c,
+            dot_src=tuple(x for x, k in zip(self.dot_src, kd, strict=True) if k) if self.dot_src else (),
+            spot_src=tuple(x for x, k in zip(self.spot_src, ks, strict=True) if k) if self.spot_src else (),
+        )
+
+    def present(self) -> tuple[Bool[Array, " D"], Bool[Array, " S"], Bool[Array, " R"], Bool[Array, " C"]]:
+        """Per kind (dots, spots, rim pixels, corners): which rows are real, not padding."""
+        sizes = (self.dot_pose, self.spot_pose, self.rim_pixels, self.chess_pose)
+        return tuple(jnp.arange(a.shape[0]) < self.counts[k] for k, a in enumerate(sizes))  # type: ignore[return-value]
+
+
+def pack(obs: Observations, use_views: bool = True, use_direct: bool = True) -> Packed:
+    """Pack ``obs``: a board pose per (view, board) seen, a pose per direct view with corners."""
+    keys: list[tuple[int, str]] = []
+    index: dict[tuple[int, str], int] = {}
+
+    def key(vi, b):
+        if (vi, b) not in index:
+            index[(vi, b)] = len(keys)
+            keys.append((vi, b))
+        return index[(vi, b)]
+
+    dp, dpts, dpx, sp, sl, spx, rim, dsrc, ssrc = [], [], [], [], [], [], [], [], []
+    for vi, v in enumerate(obs.views if use_views else []):
+        for b, (px, seen) in v.boards.items():
+            if not seen.any():
+                continue
+            k = key(vi, b)
+            dp.extend([k] * int(seen.sum()))
+            dpts.append(obs.boards[b][seen])
+            dpx.append(px[seen])
+            dsrc.extend((vi, b, int(j)) for j in np.flatnonzero(seen))
+        for j, s in enumerate(v.spots):
+            if s.board is None or (vi, s.board) not in index:
+                continue  # no plane for it: no board, or a board with no dots (so no pose) in this view
+            sp.append(key(vi, s.board))
+            sl.append(s.laser)
+            spx.append(s.pixel)
+            ssrc.append((vi, j))
+        rim.append(np.asarray(v.rim, float).reshape(-1, 2))
+    cp, cpts, cpx, ckeys = [], [], [], []
+    for ci, cv in enumerate(obs.calibration_views if use_direct else []):
+        if not cv.seen.any():
+            continue
+        cp.extend([len(ckeys)] * int(cv.seen.sum()))
+        ckeys.append(ci)
+        cpts.append(obs.boards[cv.board][cv.seen])
+        cpx.append(cv.pixels[cv.seen])
+
+    def cat(parts, width):
+        return np.concatenate(parts).astype(float) if parts else np.zeros((0, width))
+
+    # host (numpy) arrays: a device array of each dataset's own size would compile its own
+    # small copies and slices; the compiled functions take them padded (Layout.pad_packed)
+    return Packed(
+        np.array(dp, dtype=np.int64),
+        cat(dpts, 3),
+        cat(dpx, 2),
+        np.array(sp, dtype=np.int64),
+        np.array(sl, dtype=np.int64),
+        np.array(spx, dtype=float).reshape(-1, 2),
+        cat(rim, 2),
+        np.array(cp, dtype=np.int64),
+        cat(cpts, 3),
+        cat(cpx, 2),
+        np.array([len(dp), len(sp), sum(len(r) for r in rim), len(cp)], dtype=np.int64),
+        tuple(keys),
+        tuple(ckeys),
+        tuple(dsrc),
+        tuple(ssrc),
+    )
+
+
+# ----------------------------------------------------------------------------- shape buckets
+
+MIN_BUCKET = 8
+# the joint problem's ladders (see :meth:`Layout.of`): (floor, step) of observation rows and of pose blocks
+OBSERVATION_LADDER = (4096, 4)
+POSE_LADDER = (64, 4)
+
+
+def bucket(n: int, floor: int = MIN_BUCKET, step: int = 2) -> int:
+    """The padded size of an axis of ``n`` rows: the smallest ``floor * step**k`` that holds
+    them (0 stays 0).
+
+    The default (powers of two from 8) serves the functions that evaluate every row, padding
+    included (trials in lockstep under ``vmap``): a dataset pays at most twice its rows and a
+    size range of 2x shares one compilation.
+    """
+    if n < 0:
+        raise ValueError(f"a size cannot be negative, got {n}")
+    if n == 0:
+        return 0
+    size = floor
+    while size < n:
+        size *= step
+    return size
+
+
+def pad_rows(x, size: int, fill=None) -> np.ndarray:
+    """``x`` (host or device array) padded along its first axis to ``size`` rows.
+
+    The padding repeats ``fill`` (one row) or, by default, the first row of ``x`` (zeros
+    if it has none), so that padded rows hold values the model evaluates without trouble.
+    """
+    x = np.asarray(x)
+    n = x.shape[0]
+    if size < n:
+        raise ValueError(f"cannot pad {n} rows to {size}")
+    if size == n:
+        return x
+    row = (x[0] if n else np.zeros(x.shape[1:], x.dtype)) if fill is None else np.asarray(fill, x.dtype)
+    return np.concatenate([x, np.broadcast_to(row, (size - n,) + x.shape[1:])])
+
+
+def map_rows(vfn, chunk: int = 256):
+    """``vfn(*consts, rows)`` (a map over the rows' first axis) as ``f(*consts, rows, count)``
+    that evaluates only the first ``count`` rows, in a loop over chunks of ``chunk`` (the rest
+    of the output is zeros): padded rows then cost nothing.  For :func:`map_padded`."""
+
+    def run(*a):
+        *consts, rows, count = a
+        n = rows.shape[0]
+        k = min(chunk, n)
+        if k == 0:
+            return vfn(*consts, rows)
+        shapes = jax.eval_shape(vfn, *consts, rows[:k])
+        out = jax.tree_util.tree_map(lambda sd: jnp.zeros((n,) + sd.shape[1:], sd.dtype), shapes)
+
+        def body(i, out):
+            start = jnp.minimum(i * k, n - k)  # the last chunk moved back to fit: rows done twice, alike
+            part = vfn(*consts, jax.lax.dynamic_slice_in_dim(rows, start, k))
+            return jax.tree_util.tree_map(lambda o, p: jax.lax.dynamic_update_slice_in_dim(o, p, start, 0), out, part)
+
+        return jax.lax.fori_loop(0, (count + k - 1) // k, body, out)
+
+    return run
+
+
+def map_padded(fn, *args, rows):
+    """``fn(*args, rows, count)`` (see :func:`map_rows`) with ``rows`` padded to the joint
+    problem's bucket (:data:`OBSERVATION_LADDER`) and every output cut back to the real rows:
+    one compilation for every size of a bucket, and the padding costs nothing."""
+    n = np.shape(rows)[0]
+    out = fn(*args, jnp.asarray(pad_rows(rows, bucket(n, *OBSERVATION_LADDER))), jnp.asarray(n))
+    return jax.tree_util.tree_map(lambda x: np.asarray(x)[:n], out)
+
+
+class Layout(NamedTuple):
+    """The real and padded sizes of a problem: dots, spots, rim pixels, corners, board poses, direct-view poses."""
+
+    n: tuple[int, int, int, int, int, int]
+    cap: tuple[int, int, int, int, int, int]
+
+    @staticmethod
+    def of(pk: "Packed", n_poses: int | None = None, n_chess: int | None = None, fine: bool = False) -> "Layout":
+        """The layout of ``pk`` (its real rows) with every size rounded up by :func:`bucket`.
+
+        The joint problem's ladders are coarse (:data:`OBSERVATION_LADDER`: 4096 rows, then
+        steps of 4x; :data:`POSE_LADDER`: 64 poses, then 4x): its loops visit only the real
+        rows (``slcvjax.calibration.lm.accumulate``), so the padding costs little (measured by
+        ``benchmarks/bench_compile.py``'s padding part), and every dataset up to 4096
+        observations of each kind and 64 poses of each kind shares one compilation.
+
+        ``n_poses`` / ``n_chess``: the number of board / direct-view poses (by default
+        those of ``pk``'s keys).  ``fine``: powers of two instead, for solves that visit
+        every row, padding included (trials in lockstep under ``vmap``).
+        """
+        c = np.asarray(pk.counts)
+        n = (
+            int(c[0]),
+            int(c[1]),
+            int(c[2]),
+            int(c[3]),
+            pk.n_pose_blocks if n_poses is None else n_poses,
+            pk.n_chess if n_chess is None else n_chess,
+        )
+        obs, poses = ((MIN_BUCKET, 2),) * 2 if fine else (OBSERVATION_LADDER, POSE_LADDER)
+        return Layout(n, tuple(bucket(k, *(obs if i < 4 else poses)) for i, k in enumerate(n)))  # type: ignore[arg-type]
+
+    def pad_packed(self, pk: "Packed") -> "Packed":
+        """``pk``'s arrays padded to the layout's sizes, without the static keys (which would
+        make every dataset its own compilation)."""
+        d, s, r, c = self.cap[:4]
+        pairs = {}
+        if pk.pair_block is not None:
+            n_pairs = np.shape(pk.pair_block)[0]
+            size = bucket(n_pairs, *POSE_LADDER)
+            pairs = {
+                "pair_block": jnp.asarray(pad_rows(pk.pair_block, size)),
+                "pair_box": jnp.asarray(pad_rows(pk.pair_box, size)),
+            }
+        return Packed(
+            jnp.asarray(pad_rows(pk.dot_pose[: self.n[0]], d)),
+            jnp.asarray(pad_rows(pk.dot_points[: self.n[0]], d)),
+            jnp.asarray(pad_rows(pk.dot_pixels[: self.n[0]], d)),
+            jnp.asarray(pad_rows(pk.spot_pose[: self.n[1]], s)),
+            jnp.asarray(pad_rows(pk.spot_laser[: self.n[1]], s)),
+            jnp.asarray(pad_rows(pk.spot_pixels[: self.n[1]], s)),
+            jnp.asarray(pad_rows(pk.rim_pixels[: self.n[2]], r)),
+            jnp.asarray(pad_rows(pk.chess_pose[: self.n[3]], c)),
+            jnp.asarray(pad_rows(pk.chess_points[: self.n[3]], c)),
+            jnp.asarray(pad_rows(pk.chess_pixels[: self.n[3]], c)),
+            jnp.asarray(self.n[:4], dtype=jnp.int64),
+            (),
+            (),
+            **pairs,
+        )
+
+    def pad_poses(self, poses: Pose, chess: bool = False) -> Pose:
+        """Stacked board poses (or direct-view poses) padded with copies of the first."""
+        size = self.cap[5 if chess else 4]
+        return Pose(jnp.asarray(pad_rows(poses.R, size, np.eye(3))), jnp.asarray(pad_rows(poses.t, size)))
+
+    def unpad_poses(self, poses: Pose, chess: bool = False) -> Pose:
+        """The real poses of padded ones (host arrays)."""
+        k = self.n[5 if chess else 4]
+        return Pose(np.asarray(poses.R)[:k], np.asarray(poses.t)[:k])
+
+    def pad_blocks(self, x, fill=0.0) -> np.ndarray:
+        """A per-pose-block array (board poses, then direct-view poses) padded with ``fill``."""
+        x = np.asarray(x)
+        p, c = self.n[4], self.n[5]
+        return np.concatenate(
+            [
+                pad_rows(x[:p], self.cap[4], np.full(x.shape[1:], fill)),
+                pad_rows(x[p : p + c], self.cap[5], np.full(x.shape[1:], fill)),
+            ]
+        )
+
+    def unpad_blocks(self, x) -> np.ndarray:
+        """A per-pose-block array of the padded problem restricted to the real blocks."""
+        x = np.asarray(x)
+        return np.concatenate([x[: self.n[4]], x[self.cap[4] : self.cap[4] + self.n[5]]])
+
+    def unpad_observations(self, x) -> np.ndarray:
+        """A per-observation array of the padded problem (dots, spots, rim, corners) restricted to the real ones."""
+        x = np.asarray(x)
+        parts, start = [], 0
+        for k in range(4):
+            parts.append(x[start : start + self.n[k]])
+            start += self.cap[k]
+        return np.concatenate(parts)
+
+
+def stack_poses(poses: list[Pose]) -> Pose:
+    """A list of poses as one :class:`Pose` with leading axis (P, ...), stacked on the host.
+
+    Host code only (not under ``jit``): host arrays, copied to the device (padded) by the
+    compiled functions that take them.
+    """
+    return Pose(np.stack([np.asarray(p.R) for p in poses]), np.stack([np.asarray(p.t) for p in poses]))
+
+
+def unstack_poses(poses: Pose) -> list[Pose]:
+    """Stacked poses (P, ...) as a list of P poses, copied to the host once (numpy fields).
+
+    Indexing a device array pose by pose costs a dispatch each; host code that loops
+    over the poses reads them from this list instead.
+    """
+    R, t = np.asarray(poses.R), np.asarray(poses.t)
+    return [Pose(R[k], t[k]) for k in range(R.shape[0])]
+
+
+def dot_residuals(
+    rig: Rig, poses: Pose, packed: Packed, implicit: bool = True
+) -> tuple[Float[Array, "D 2"], Bool[Array, " D"]]:
+    """Predicted minus observed pixel of every dot, and whether the prediction is valid."""
+
+    def one(k, x_board, px):
+        pose = Pose(poses.R[k], poses.t[k])
+        res = project_through_mirror(rig.camera, rig.mirror, pose.apply(x_board), implicit=implicit)
+        return res.uv - px, res.valid
+
+    return jax.vmap(one)(packed.dot_pose, packed.dot_points, packed.dot_pixels)
+
+
+def spot_residuals(
+    rig: Rig, poses: Pose, packed: Packed, implicit: bool = True
+) -> tuple[Float[Array, "S 2"], Bool[Array, " S"]]:
+    """Predicted minus observed pixel of every laser spot, and validity."""
+
+    def one(k, laser, px):
+        pose = Pose(poses.R[k], poses.t[k])
+        x, ok = line_plane_intersection(
+            rig.lasers.points[laser], rig.lasers.directions[laser], pose, forward_only=False
+        )
+        res = project_through_mirror(rig.camera, rig.mirror, x, implicit=implicit)
+        return res.uv - px, ok & res.valid
+
+    return jax.vmap(one)(packed.spot_pose, packed.spot_laser, packed.spot_pixels)

@@ -1,0 +1,129 @@
+"""Traced programs kept on disk: a new process skips tracing as the compilation cache skips compiling.
+
+JAX's persistent compilation cache (:mod:`slcvjax.support.cache`) saves XLA's work, but a new process
+still traces and lowers every function before it can look the compilation up, and the
+joint solve takes seconds to trace.  :class:`PersistentJit` wraps a function like
+``jax.jit``; the first call for a signature (the argument pytree with its static fields,
+the shapes and dtypes of its arrays) exports the traced program (:func:`jax.export.export`)
+to ``<cache folder>/traces/``, and a later process deserializes it and calls it
+(``jax.jit(exported.call)``), whose compilation the compilation cache then holds.
+
+An entry's name hashes the signature with the package's source code and the versions of
+JAX and jaxlib, so a changed ``slcvjax`` or JAX never loads an old program.  Where the
+cache is off, or exporting fails, the function is an ordinary ``jax.jit``.
+"""
+
+import hashlib
+import pickle
+import tempfile
+import threading
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import jaxlib
+import numpy as np
+
+from .cache import compilation_cache_dir
+
+STATS = {"exported": 0, "loaded": 0}
+# Programs with loops run one at a time: two executed at once from threads
+# (``calibrate_many(..., workers=2)``) wedged XLA's CPU thread pool for good in
+# ``benchmarks/bench_calibrate.py`` (every thread waiting on its result, no CPU used).
+_EXECUTE = threading.Lock()
+_SOURCE_HASH: list[str] = []
+
+
+def _source_hash() -> str:
+    if not _SOURCE_HASH:
+        h = hashlib.sha256()
+        for p in sorted(Path(__file__).parent.parent.rglob("*.py")):
+            h.update(p.name.encode())
+            h.update(p.read_bytes())
+        h.update(f"{jax.__version__} {jaxlib.__version__} {jax.default_backend()}".encode())
+        h.update(str(jax.config.jax_enable_x64).encode())
+        _SOURCE_HASH.append(h.hexdigest())
+    return _SOURCE_HASH[0]
+
+
+def _dtype(x):
+    return x.dtype if hasattr(x, "dtype") else np.result_type(x)
+
+
+def _folder() -> Path | None:
+    d = compilation_cache_dir()
+    return None if d is None else Path(d) / "traces"
+
+
+def _write_atomic(path: Path, data: bytes) -> None:
+    with tempfile.NamedTemporaryFile(dir=path.parent, prefix=".tmp-", delete=False) as f:
+        f.write(data)
+    Path(f.name).replace(path)
+
+
+class PersistentJit:
+    """``jax.jit(fn)`` whose traced program persists across processes (see the module docstring).
+
+    Positional array arguments only (pytrees of arrays); no static arguments.
+    """
+
+    def __init__(self, fn, name: str):
+        self.fn, self.name = fn, name
+        self.jit = jax.jit(fn)
+        self._calls: dict = {}
+
+    def __call__(self, *args):
+        leaves, tree = jax.tree_util.tree_flatten(args)
+        # every leaf a strongly typed array committed to the default device: Python scalars,
+        # weakly typed or uncommitted arrays would make one exported signature several compilations
+        device = jax.devices()[0]
+        leaves = [
+            jax.device_put(
+                x if isinstance(x, jax.Array) and not x.weak_type else jnp.asarray(x, dtype=_dtype(x)), device
+            )
+            for x in leaves
+        ]
+        sig = (str(tree), tuple((x.shape, str(x.dtype)) for x in leaves))
+        entry = self._calls.get(sig)
+        if entry is None:
+            entry = self._calls[sig] = self._entry(leaves, tree, sig)
+        with _EXECUTE:
+            if entry is False:
+                return jax.block_until_ready(self.jit(*args))
+            call, out_tree = entry
+            return jax.tree_util.tree_unflatten(out_tree, jax.block_until_ready(call(*leaves)))
+
+    def _entry(self, leaves, tree, sig):
+        folder = _folder()
+        if folder is None:
+            return False
+        key = hashlib.sha256(f"{self.name} {sig} {_source_hash()}".encode()).hexdigest()[:40]
+        path = folder / f"{self.name}-{key}.jaxexport"
+        if path.exists():
+            try:
+                blob = pickle.loads(path.read_bytes())
+                exported = jax.export.deserialize(bytearray(blob["exported"]))
+                out_tree = jax.tree_util.tree_structure(pickle.loads(blob["skeleton"]))
+                STATS["loaded"] += 1
+                return jax.jit(exported.call), out_tree
+            except Exception:  # noqa: BLE001  (a stale or broken entry is traced again)
+                pass
+        box = []
+
+        def flat(*xs):
+            out = self.fn(*jax.tree_util.tree_unflatten(tree, list(xs)))
+            out_leaves, out_tree = jax.tree_util.tree_flatten(out)
+            box.append(out_tree)
+            return out_leaves
+
+        try:
+            exported = jax.export.export(jax.jit(flat))(*(jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves))
+            out_tree = box[-1]
+            skeleton = jax.tree_util.tree_unflatten(out_tree, [0] * out_tree.num_leaves)
+            blob = {"exported": bytes(exported.serialize()), "skeleton": pickle.dumps(skeleton)}
+            folder.mkdir(parents=True, exist_ok=True)
+            _write_atomic(path, pickle.dumps(blob))
+        except Exception:  # noqa: BLE001  (whatever cannot be exported runs as a plain jit)
+            return False
+        STATS["exported"] += 1
+        return jax.jit(exported.call), out_tree
