@@ -68,6 +68,7 @@ from .geometry.conic import AsphereMirror, ConicMirror  # noqa: E402
 from .geometry.lasers import Lasers, line_plane_intersection  # noqa: E402
 from .geometry.mirror import (  # noqa: E402
     ConeMirror,
+    Mirror,
     MirrorProjection,
     MirrorRay,
     RayHit,
@@ -187,6 +188,7 @@ __all__ = [
     "FormatError",
     "Lasers",
     "MeasurePlan",
+    "Mirror",
     "MirrorProjection",
     "MirrorRay",
     "Observations",

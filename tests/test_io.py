@@ -47,6 +47,21 @@ def test_calibration_roundtrip(tmp_path, small):
     assert len(back.calibration_view_poses) == len(truth.calibration_view_poses)
 
 
+def test_a_camera_only_calibration_roundtrip(tmp_path, small):
+    """A plain camera's calibration (no mirror, no lasers) is written and read back as such."""
+    _, truth = small
+    rig = sj.Rig.camera_only(truth.rig.camera)
+    assert rig.mirror is None and rig.lasers.n == 0
+    path = tmp_path / "camera.json"
+    write_calibration(path, sj.Calibration(rig))
+    doc = json.loads(path.read_text())
+    assert "mirror" not in doc and doc.get("lasers", []) == []
+    back = read_calibration(path)
+    assert back.rig.mirror is None and back.rig.lasers.n == 0
+    np.testing.assert_allclose(back.rig.camera.K, truth.rig.camera.K, rtol=1e-15)
+    np.testing.assert_allclose(back.rig.camera.dist, truth.rig.camera.dist, rtol=1e-15)
+
+
 def test_extra_fields_are_kept_and_ignored(tmp_path, small):
     obs, _ = small
     doc = observations_to_json(obs)

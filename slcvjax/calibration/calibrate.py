@@ -128,6 +128,40 @@ _RTOL_FINAL = 1e-10
 # in the beams (benchmarks/bench_compile.py's scenes); the next pass goes on from there
 _STEPS_A = 10
 AIMED_TURN_DEG = 10.0  # a laser aimed through its spots that turns by more than this is tried as another start
+
+
+@dataclass(frozen=True)
+class PassSpec:
+    """One joint pass of :func:`calibrate`'s schedule: what it frees and how it weighs and stops.
+
+    ``lasers_held``: the lasers' columns held (the rest as the calibration frees them);
+    ``kind_weight``: the weight of each observation kind (dot, spot, rim, corner; None: all 1);
+    ``rtol``: the LM's relative cost tolerance; ``scale_floor``: the loss scale is the user's
+    ``loss_scale``, else 3 x the robust noise sigma of the pass's start, at least this many px
+    (None: the scale the trial has); ``steps``: a step limit below the calibration's (the pass
+    only has to bring the next into its basin); ``loss``: a loss instead of the calibration's.
+    """
+
+    name: str
+    lasers_held: bool = False
+    kind_weight: tuple[float, float, float, float] | None = None
+    rtol: float = _RTOL_START
+    scale_floor: float | None = None
+    steps: int | None = None
+    loss: str | None = None
+
+
+_NO_SPOTS = (1.0, 0.0, 1.0, 1.0)
+# the schedule: A (and A2 after the boards are flipped again) fits the geometry without the
+# lasers; B everything from lasers refitted on it (B2 from lasers aimed through their spots);
+# C the final pass at the re-estimated scale, C3 without the outliers, C2 after boards turned
+PASS_A = PassSpec("A: camera, mirror, poses", True, _NO_SPOTS, _RTOL_TWIN, 0.1, _STEPS_A)
+PASS_A2 = PassSpec("A2: after re-flipping", True, _NO_SPOTS, _RTOL_START, 0.1, _STEPS_A)
+PASS_B = PassSpec("B: joint", scale_floor=0.05)
+PASS_B2 = PassSpec("B2: joint (lasers aimed through their spots)")
+PASS_C = PassSpec("C: joint (final)", rtol=_RTOL_FINAL)
+PASS_C3 = PassSpec("C3: joint (outliers left out)", rtol=_RTOL_FINAL)
+PASS_C2 = PassSpec("C2: joint (after turning)", rtol=_RTOL_FINAL)
 _covariance_of_linearisation = jax.jit(covariance_of_linearisation)
 _block_costs_jit = jax.jit(block_costs, static_argnames=("n_blocks",))
 
@@ -492,7 +526,14 @@ def calibrate_many(
     batch: str = "auto",
     progress: bool = False,
     workers: int = 1,
-    **kwargs,
+    *,
+    camera: Camera | None = None,
+    freeze: tuple[str, ...] | set[str] = (),
+    loss: str = "huber",
+    loss_scale: float | None = None,
+    max_steps: int = 500,
+    rigid: "bool | list[str]" = False,
+    mirror=None,
 ) -> list[CalibrationResult]:
     """Calibrate several observation sets (Monte Carlo trials, say) with :func:`calibrate`'s method.
 
@@ -510,15 +551,14 @@ def calibrate_many(
     (the staged stages, OpenCV, NumPy) beside another's compiled programs, which run one at
     a time (see ``slcvjax.support.persist``); results equal to round-off.
 
-    ``kwargs`` are :func:`calibrate`'s (``camera``, ``freeze``, ``loss``, ...).  With
+    ``camera``, ``freeze``, ``loss``, ``loss_scale``, ``max_steps``, ``rigid`` and ``mirror`` are
+    :func:`calibrate`'s, the same for every set.  With
     ``progress`` a bar counts the calibrations (in ``vmap`` they finish together, and the
     bar names the pass under way).
     """
-    kw = dict(camera=None, freeze=(), loss="huber", loss_scale=None, max_steps=500, rigid=False, mirror=None)
-    unknown = sorted(set(kwargs) - set(kw))
-    if unknown:
-        raise TypeError(f"calibrate_many: unexpected keyword(s) {', '.join(unknown)} (calibrate takes {', '.join(kw)})")
-    kw |= kwargs
+    kw = dict(
+        camera=camera, freeze=freeze, loss=loss, loss_scale=loss_scale, max_steps=max_steps, rigid=rigid, mirror=mirror
+    )
     args = (kw["camera"], kw["freeze"], kw["loss"], kw["loss_scale"], kw["max_steps"])
     groups = [rigid_group(o, kw["rigid"]) for o in observations]
 
@@ -669,45 +709,27 @@ def _calibrate_lockstep(
     ]
     size = len(trials)
 
-    def run(name, chosen, lasers_held, scale, kind_weight=None, rtol=_RTOL_START, pass_loss=None, steps=None):
-        """One LM pass of the ``chosen`` trials from where they are; ``scale(trial)``: its loss
-        scale; ``pass_loss``: a loss for this pass instead of the calibration's; ``steps``: a
-        step limit below the calibration's."""
+    def run(spec: PassSpec, chosen: list[int], scale: float | None = None):
+        """The pass ``spec`` of the ``chosen`` trials from where they are (``scale``: its loss
+        scale instead of the one ``spec`` gives)."""
         for i in chosen:
-            trials[i].scale = scale(trials[i])
-        jobs = [
-            _job(tr, tr.params, tr.mask_a if lasers_held else tr.masks, kind_weight, rtol)
-            for tr in (trials[i] for i in chosen)
-        ]
-        own = steps if steps is not None and steps < max_steps else None  # the pass's own limit
-        for i, res in zip(chosen, solver(jobs, pass_loss or loss, own or max_steps, size=size), strict=True):
             tr = trials[i]
-            code = int(res.result)
-            capped = own is not None and code == MAX_STEPS
-            tr.passes.append(
-                JointPass(
-                    name,
-                    int(res.steps),
-                    f"stopped at its limit of {own} steps" if capped else RESULT_NAMES[code],
-                    float(res.initial_cost),
-                    float(res.cost),
-                    float(tr.scale),
-                    code,
-                    own,
-                )
-            )
-            tr.params = unpad_params(tr.layout, res.params)
+            if scale is not None:
+                tr.scale = scale
+            elif spec.scale_floor is not None:
+                tr.scale = loss_scale or 3.0 * max(robust_sigma(tr.params, tr.pk), spec.scale_floor)
+        jobs = [_job(trials[i], trials[i].params, spec) for i in chosen]
+        own = spec.steps if spec.steps is not None and spec.steps < max_steps else None  # the pass's own limit
+        for i, res in zip(chosen, solver(jobs, spec.loss or loss, own or max_steps, size=size), strict=True):
+            _record(trials[i], spec.name, res, own)
+            trials[i].params = unpad_params(trials[i].layout, res.params)
         if bar is not None:
-            bar.set_postfix_str(name.split(":")[0])
+            bar.set_postfix_str(spec.name.split(":")[0])
 
     every = list(range(size))
 
-    def robust_scale(floor):
-        return lambda tr: loss_scale or 3.0 * max(robust_sigma(tr.params, tr.pk), floor)
-
     # A: geometry without the lasers, only far enough to decide the boards' flips again
-    rtol_a = _RTOL_TWIN if "poses" not in freeze else _RTOL_START
-    run("A: camera, mirror, poses", every, True, robust_scale(0.1), [1.0, 0.0, 1.0, 1.0], rtol_a, steps=_STEPS_A)
+    run(PASS_A if "poses" not in freeze else dataclasses.replace(PASS_A, rtol=_RTOL_START), every)
     # the boards' flips decided again on the refined geometry, then A once more where any
     # board turned (otherwise pass A's poses already fit the dots on this geometry)
     if "poses" not in freeze:
@@ -719,7 +741,7 @@ def _calibrate_lockstep(
                 tr.params = Params(p.rig, poses, p.chess)
                 again.append(i)
         if again:
-            run("A2: after re-flipping", again, True, robust_scale(0.1), [1.0, 0.0, 1.0, 1.0], steps=_STEPS_A)
+            run(PASS_A2, again)
 
     def other_starts(chosen, turned_only: bool, pass_loss=None) -> list[int]:
         """Each board pose of the ``chosen`` trials swapped for its flipped twin, or for its pose
@@ -732,7 +754,7 @@ def _calibrate_lockstep(
         # one solve per kind of start over the chosen trials: the batch shapes of a pass
         solved = [
             solver(
-                [_job(trials[i], c, hold, None, _RTOL_TWIN) for i, (c, hold) in zip(chosen, kind, strict=True)],
+                [_job(trials[i], c, _TWIN_SOLVE, hold) for i, (c, hold) in zip(chosen, kind, strict=True)],
                 this_loss,
                 max_steps,
                 size=size,
@@ -772,8 +794,8 @@ def _calibrate_lockstep(
                 starts.append(Params(Rig(p.rig.camera, p.rig.mirror, aimed), p.poses, p.chess))
         if not picked:
             return
-        jobs = [_job(trials[i], st, trials[i].masks, None, _RTOL_START) for i, st in zip(picked, starts, strict=True)]
-        now = [_job(trials[i], trials[i].params, trials[i].masks, None, _RTOL_START) for i in picked]
+        jobs = [_job(trials[i], st, PASS_B2) for i, st in zip(picked, starts, strict=True)]
+        now = [_job(trials[i], trials[i].params, PASS_B2) for i in picked]
         solved = solver(jobs, loss, max_steps, size=size)
         # B's own final cost held the rim rows' normalisation of B's start: the cost at B's
         # solution is taken again with the one the aimed solve started from (the same rig)
@@ -781,18 +803,7 @@ def _calibrate_lockstep(
         for i, res, cur in zip(picked, solved, current, strict=True):
             tr = trials[i]
             kept = float(res.cost) < float(cur.cost)
-            outcome = "; kept: a lower cost than B's" if kept else "; B's cost is lower"
-            tr.passes.append(
-                JointPass(
-                    "B2: joint (lasers aimed through their spots)",
-                    int(res.steps),
-                    RESULT_NAMES[int(res.result)] + outcome,
-                    float(res.initial_cost),
-                    float(res.cost),
-                    float(tr.scale),
-                    int(res.result),
-                )
-            )
+            _record(tr, PASS_B2.name, res, None, "; kept: a lower cost than B's" if kept else "; B's cost is lower")
             if kept:
                 tr.params = unpad_params(tr.layout, res.params)
 
@@ -804,18 +815,18 @@ def _calibrate_lockstep(
             fit = fit_lasers(p.rig.camera, p.rig.mirror, tr.pk, unstack_poses(p.poses), tr.obs.n_lasers)
             tr.params = Params(Rig(p.rig.camera, p.rig.mirror, fit.lasers), p.poses, p.chess)
             _relabel_spots(tr, fit)
-    run("B: joint", every, False, robust_scale(0.05))
+    run(PASS_B, every)
     if "lasers" not in freeze:
         aimed_starts(every)
     # boards whose other starts (refined with dots and spots, the rig held) fit better are swapped
     for tr in trials:
-        tr.scale = robust_scale(0.05)(tr)
+        tr.scale = loss_scale or 3.0 * max(robust_sigma(tr.params, tr.pk), PASS_B.scale_floor)
     if "poses" not in freeze:
         other_starts(every, turned_only=False)
     # C: final pass at the re-estimated scale.  Every kind keeps weight 1: weighting each by
     # its own noise (the rim's is larger in rendered images) made the lasers worse from images
     # (benchmarks/images_vs_file.py), where the dots' errors are mostly systematic
-    run("C: joint (final)", every, False, lambda tr: tr.scale, rtol=_RTOL_FINAL)
+    run(PASS_C, every)
     # observations far beyond the noise (gross outliers: a wrong dot, a reflection taken
     # for a spot) are left out and C run again, so that none is spread over good ones
     for i in every:
@@ -823,14 +834,13 @@ def _calibrate_lockstep(
             trials[i],
             lambda i=i: other_starts([i], turned_only=False, pass_loss="cauchy"),
             lambda pass_loss, scale, i=i: run(
-                f"C3: joint (Cauchy loss at {scale:.3g} px, to find the outliers)"
+                dataclasses.replace(
+                    PASS_C3, name=f"C3: joint (Cauchy loss at {scale:.3g} px, to find the outliers)", loss=pass_loss
+                )
                 if pass_loss
-                else "C3: joint (outliers left out)",
+                else PASS_C3,
                 [i],
-                False,
-                lambda tr, scale=scale: scale,
-                rtol=_RTOL_FINAL,
-                pass_loss=pass_loss,
+                scale,
             ),
             find=loss != "linear",
         )
@@ -842,7 +852,7 @@ def _calibrate_lockstep(
         again = other_starts(again, turned_only=True)
         if not again:
             break
-        run("C2: joint (after turning)", again, False, lambda tr: tr.scale, rtol=_RTOL_FINAL)
+        run(PASS_C2, again)
     out = []
     for tr in trials:
         cov = covariance_of(tr.params, tr.pk, tr.masks, loss, tr.scale)
@@ -1316,10 +1326,28 @@ def _with_dot_labels(pk: Packed, obs: Observations, moved: dict[int, int]) -> Pa
     return dataclasses.replace(pk, dot_points=pts, dot_src=tuple(src))
 
 
-def _job(tr: "_Trial", params: Params, masks: Masks, kind_weight, rtol: float) -> tuple:
-    """A solve of trial ``tr`` from ``params``: ``(params, arrays, masks, scale, kind_weight, rtol)``
-    padded to the trial's shape buckets."""
-    return (pad_params(tr.layout, params), tr.arr, pad_masks(tr.layout, masks), tr.scale, kind_weight, rtol)
+def _job(tr: "_Trial", params: Params, spec: PassSpec, masks: Masks | None = None) -> tuple:
+    """A solve of trial ``tr`` from ``params`` by the pass ``spec`` (``masks``: what it frees instead of what
+    ``spec`` says): ``(params, arrays, masks, scale, kind_weight, rtol)`` padded to the trial's shape buckets."""
+    if masks is None:
+        masks = tr.mask_a if spec.lasers_held else tr.masks
+    return (pad_params(tr.layout, params), tr.arr, pad_masks(tr.layout, masks), tr.scale, spec.kind_weight, spec.rtol)
+
+
+# the other starts of the boards' poses (:func:`_candidates`, each with its own masks)
+_TWIN_SOLVE = PassSpec("other starts", rtol=_RTOL_TWIN)
+
+
+def _record(tr: "_Trial", name: str, res, limit: int | None, outcome: str = "") -> None:
+    """Add the pass ``name``'s solve ``res`` to the trial's passes (``limit``: the pass's own step limit;
+    ``outcome``: what followed it)."""
+    code = int(res.result)
+    said = f"stopped at its limit of {limit} steps" if limit is not None and code == MAX_STEPS else RESULT_NAMES[code]
+    tr.passes.append(
+        JointPass(
+            name, int(res.steps), said + outcome, float(res.initial_cost), float(res.cost), float(tr.scale), code, limit
+        )
+    )
 
 
 def _twin(params: Params, arr: Packed, masks: Masks) -> tuple[Params, Masks]:

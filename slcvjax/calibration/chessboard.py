@@ -107,6 +107,8 @@ def calibrate_from_corners(
     obs = Observations(size, 1.0, 1.0, 0, {"chess": points}, views, [])
     cam0, poses0, rep = calibrate_intrinsics(obs)
     pk = pack(obs, use_views=False)
+    # the joint LM traces every observation kind over a full rig; here the mirror's columns are
+    # held (masks below) and no observation looks through it, so any mirror serves as its slot
     rig = Rig(
         cam0,
         ConeMirror.create([0.0, 0.0, 1e3], [0.0, 0.0, 1.0], 1.0, 1.0),

@@ -9,7 +9,6 @@ from .common import board_arg, export_opencv
 def run(args) -> int:
     from ..calibration.chessboard import calibrate_camera_images
     from ..calibration.staged import CalibrationError
-    from ..geometry.lasers import Lasers
     from ..geometry.rig import Rig
     from ..observations.formats import Calibration
 
@@ -31,7 +30,7 @@ def run(args) -> int:
     )
     print(f"rms {res.rms_px:.5f} px (OpenCV's calibrateCamera on the same corners: {res.opencv_rms_px:.5f} px)")
     doc = Calibration(
-        Rig(c, None, Lasers(np.zeros((0, 3)), np.zeros((0, 3)))),  # type: ignore[arg-type]
+        Rig.camera_only(c),
         extra={
             "residuals": {
                 "rms_px": res.rms_px,

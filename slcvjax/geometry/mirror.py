@@ -79,6 +79,8 @@ class ConeMirror(eqx.Module):
 
 
 MIRROR_KINDS = ("cone",) + CONIC_KINDS + ("asphere",)
+# every mirror of revolution the forward model takes (an asphere is a conic with terms added)
+Mirror = ConeMirror | ConicMirror
 
 
 def shape_json(mirror) -> dict:

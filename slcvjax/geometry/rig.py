@@ -2,11 +2,12 @@
 
 import equinox as eqx
 import jax
+import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from .camera import Camera, in_image, project
 from .lasers import Lasers, line_plane_intersection
-from .mirror import ConeMirror, project_through_mirror
+from .mirror import Mirror, project_through_mirror
 from .pose import Pose
 
 CAMERA_DOF = 9
@@ -36,11 +37,18 @@ class Rig(eqx.Module):
 
     ``tangent_dim`` is ``9 + 6 + 4 N``; :meth:`retract` takes a flat increment
     in the order camera (9), mirror (6: vertex, axis tilt, shape), lasers (N x 4, row-major).
+    A camera-only rig (:meth:`camera_only`: a plain camera's calibration) has no mirror and
+    no lasers; the functions that look through the mirror need one.
     """
 
     camera: Camera
-    mirror: ConeMirror
+    mirror: Mirror | None
     lasers: Lasers
+
+    @classmethod
+    def camera_only(cls, camera: Camera) -> "Rig":
+        """The rig of a plain camera: no mirror, no lasers."""
+        return cls(camera, None, Lasers.create(np.zeros((0, 3)), np.zeros((0, 3))))
 
     @property
     def tangent_dim(self) -> int:
@@ -50,7 +58,7 @@ class Rig(eqx.Module):
         c, m = CAMERA_DOF, CAMERA_DOF + MIRROR_DOF
         return Rig(
             self.camera.retract(delta[:c]),
-            self.mirror.retract(delta[c:m]),
+            None if self.mirror is None else self.mirror.retract(delta[c:m]),
             self.lasers.retract(delta[m:].reshape(-1, LASER_DOF)),
         )
 

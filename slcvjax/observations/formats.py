@@ -527,4 +527,4 @@ def read_calibration(path: str | os.PathLike) -> Calibration:
         ]
     known = {"format", "camera", "mirror", "lasers", "board_poses", "calibration_view_poses"}
     extra = {k: v for k, v in doc.items() if k not in known}
-    return Calibration(Rig(cam, mirror, lasers), board_poses, cvp, extra)  # type: ignore[arg-type]
+    return Calibration(Rig(cam, mirror, lasers), board_poses, cvp, extra)
