@@ -44,7 +44,7 @@ from jaxtyping import Array, Bool, Float, Int
 from ..geometry.camera import Camera, in_image, pixel_to_line, project
 from ..geometry.conic import ConicMirror
 from ..geometry.lasers import Lasers, line_plane_intersection
-from ..geometry.mirror import ConeMirror, project_through_mirror
+from ..geometry.mirror import Mirror, project_through_mirror
 from ..geometry.pose import Pose
 from ..geometry.rig import CAMERA_DOF, LASER_DOF, MIRROR_DOF, Rig
 from ..observations.problem import Layout, Packed
@@ -110,11 +110,11 @@ class Params(eqx.Module):
 # ------------------------------------------------------------------ per-observation residuals
 
 
-def _cm(cam: Camera, mir: ConeMirror, d):
+def _cm(cam: Camera, mir: Mirror, d):
     return cam.retract(d[:N_CAM]), mir.retract(d[N_CAM:N_CM])
 
 
-def _mirror_pixel(cam: Camera, mir: ConeMirror, x, px):
+def _mirror_pixel(cam: Camera, mir: Mirror, x, px):
     res = project_through_mirror(cam, mir, x, rim_margin=RIM_MARGIN, apex_margin=APEX_MARGIN)
     return res.uv - px, res.valid
 
@@ -171,7 +171,7 @@ def _project_local(d, cam, mir, x, px):
     return _mirror_pixel(c, m, x + d[N_CM:], px)
 
 
-def rim_value(cam: Camera, mir: ConeMirror, uv: Float[Array, "2"]) -> tuple[Float[Array, ""], Bool[Array, ""]]:
+def rim_value(cam: Camera, mir: Mirror, uv: Float[Array, "2"]) -> tuple[Float[Array, ""], Bool[Array, ""]]:
     """``F(uv) = |X(uv) - C| - r`` (mm): the pixel's ray on the rim's plane against the rim circle."""
     o, d, ok = pixel_to_line(cam, uv)
     centre = mir.apex + mir.height * mir.axis
@@ -179,7 +179,7 @@ def rim_value(cam: Camera, mir: ConeMirror, uv: Float[Array, "2"]) -> tuple[Floa
     return safe_norm(o + lam * d - centre) - mir.radius, ok & (lam > 0.0)
 
 
-def rim_scale(cam: Camera, mir: ConeMirror, uv: Float[Array, "2"]) -> Float[Array, ""]:
+def rim_scale(cam: Camera, mir: Mirror, uv: Float[Array, "2"]) -> Float[Array, ""]:
     """``|dF/duv|`` (mm per px): ``F / |dF/duv|`` is a pixel's first-order (Sampson) distance
     from the projected rim circle, in px."""
     return safe_norm(jax.jacfwd(lambda u: rim_value(cam, mir, u)[0])(uv))

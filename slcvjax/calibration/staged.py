@@ -27,7 +27,7 @@ import numpy as np
 
 from ..geometry.camera import Camera, undistort
 from ..geometry.lasers import Lasers
-from ..geometry.mirror import ConeMirror, back_project, mirror_of_shape
+from ..geometry.mirror import Mirror, back_project, mirror_of_shape
 from ..geometry.pose import Pose, so3_exp
 from ..observations.formats import Observations, SpotObs, ViewObs, shape_missing
 from ..observations.problem import (
@@ -188,7 +188,7 @@ def _circle_pose(y):
 
 def mirror_from_rim(
     camera: Camera, rim_pixels: np.ndarray, radius: float, height: float, shape: dict | None = None
-) -> tuple[list[ConeMirror], StageReport]:
+) -> tuple[list[Mirror], StageReport]:
     """Candidate mirror poses (one or two) from the rim's edge pixels: the rim circle of
     ``radius`` at the sag ``height`` from the vertex, of a mirror of ``shape`` (None: the cone).
 
@@ -323,7 +323,7 @@ _refine_poses = PersistentJit(_refine_poses, "refine_poses")
 
 
 def board_poses(
-    camera: Camera, mirror: ConeMirror, pk: Packed, start: Pose | None = None, flips: bool = True
+    camera: Camera, mirror: Mirror, pk: Packed, start: Pose | None = None, flips: bool = True
 ) -> tuple[list[Pose], StageReport]:
     """The pose of every (view, board) of ``pk`` from its dots, by generalized planar PnP.
 
@@ -437,7 +437,7 @@ def _line_through(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return centre, (-d if d @ centre < 0 else d)
 
 
-def _spot_points(camera: Camera, mirror: ConeMirror, pk: Packed, poses: list[Pose]):
+def _spot_points(camera: Camera, mirror: Mirror, pk: Packed, poses: list[Pose]):
     """Each spot's point where its reflected ray meets its board's plane (camera frame, mm),
     whether that is usable (a valid ray, the board ahead of the mirror along it), and the rays'
     origins, directions and pixel metrics with the boards' normals and origins per spot."""
@@ -455,7 +455,7 @@ def _spot_points(camera: Camera, mirror: ConeMirror, pk: Packed, poses: list[Pos
     return pts, usable, (org, dirs, metric, normals, origins)
 
 
-def aimed_lasers(camera: Camera, mirror: ConeMirror, pk: Packed, poses: list[Pose], lasers: Lasers) -> Lasers:
+def aimed_lasers(camera: Camera, mirror: Mirror, pk: Packed, poses: list[Pose], lasers: Lasers) -> Lasers:
     """``lasers`` with each line that has spots replaced by the line from the camera's centre
     through the centroid of its spots' points on their boards: another start for a laser whose
     spots lie along a short stretch of its line (aimed where the range hardly changes from view to
@@ -473,7 +473,7 @@ def aimed_lasers(camera: Camera, mirror: ConeMirror, pk: Packed, poses: list[Pos
 
 
 def fit_lasers(
-    camera: Camera, mirror: ConeMirror, pk: Packed, poses: list[Pose], n_lasers: int, repair: bool = True
+    camera: Camera, mirror: Mirror, pk: Packed, poses: list[Pose], n_lasers: int, repair: bool = True
 ) -> LaserFit:
     """One 3D line per laser through its spots' points on their boards' planes, robust to
     wrong labels and gross outliers.
@@ -565,7 +565,7 @@ class Staged:
     """The staged result: camera, mirror, lasers, board poses, direct-view poses, reports."""
 
     camera: Camera
-    mirror: ConeMirror
+    mirror: Mirror
     lasers: Lasers
     poses: list[Pose]
     chess_poses: dict[int, Pose]
@@ -615,7 +615,7 @@ def staged(obs: Observations, camera: Camera | None = None, pk: Packed | None = 
 
 
 def assign_spot_boards(
-    obs: Observations, camera: Camera, mirror: ConeMirror, pk: Packed, poses: list[Pose]
+    obs: Observations, camera: Camera, mirror: Mirror, pk: Packed, poses: list[Pose]
 ) -> tuple[Observations, int]:
     """Give each spot that names no board the board whose plane its reflected ray meets first.
 

@@ -5,11 +5,7 @@ import time
 from pathlib import Path
 
 from ..observations.formats import FormatError, write_calibration
-from .common import (
-    export_opencv,
-    print_placed,
-    print_report,
-)
+from .common import export_opencv, print_placed, print_report
 
 
 def _read_inputs(inputs: list[Path], progress: bool = True):

@@ -7,14 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from ..observations.formats import write_calibration, write_observations, write_text_atomic
-from .common import (
-    fmt,
-    pipe_report,
-    print_placed,
-    print_report,
-    summary,
-    write_pipe,
-)
+from .common import fmt, pipe_report, print_placed, print_report, summary, write_pipe
 
 
 def run(args) -> int:

@@ -5,9 +5,7 @@ import time
 from pathlib import Path
 
 from ..observations.formats import write_calibration, write_observations
-from .common import (
-    summary,
-)
+from .common import summary
 
 
 def run(args) -> int:

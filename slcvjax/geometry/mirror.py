@@ -116,7 +116,7 @@ def mirror_of_shape(shape: dict | None, apex, axis, radius: float | None = None,
     )
 
 
-def surface_normal(mirror: ConeMirror, x: Float[Array, "3"]) -> Float[Array, "3"]:
+def surface_normal(mirror: Mirror, x: Float[Array, "3"]) -> Float[Array, "3"]:
     """Outward unit normal of the cone at a surface point.
 
     On the surface the quadric's gradient ``q - (1 + k^2)(q.a) a`` has the direction
@@ -137,7 +137,7 @@ def reflect(d: Float[Array, "3"], n: Float[Array, "3"]) -> Float[Array, "3"]:
     return d - 2.0 * jnp.dot(d, n) * n
 
 
-def intersect(mirror: ConeMirror, origin: Float[Array, "3"], direction: Float[Array, "3"]) -> RayHit:
+def intersect(mirror: Mirror, origin: Float[Array, "3"], direction: Float[Array, "3"]) -> RayHit:
     """First intersection of the ray ``origin + t d`` (t > 0) with the finite cone.
 
     The quadric ``|w + t d|^2 - (1 + k^2)((w + t d).a)^2 = 0`` (``w = origin - apex``)
@@ -188,7 +188,7 @@ class MirrorRay(NamedTuple):
     valid: Bool[Array, ""]
 
 
-def back_project(cam: Camera, mirror: ConeMirror, uv: Float[Array, "2"]) -> MirrorRay:
+def back_project(cam: Camera, mirror: Mirror, uv: Float[Array, "2"]) -> MirrorRay:
     """Pixel -> reflected ray (closed form): undistort, intersect the cone, reflect.
 
     Camera frame, mm.  ``valid`` is False where the pixel's ray misses the
@@ -276,7 +276,7 @@ class MirrorProjection(NamedTuple):
 
 
 def solve_mirror_point(
-    mirror: ConeMirror,
+    mirror: Mirror,
     p_cam: Float[Array, "3"],
     iters: int = 6,
     implicit: bool = True,
@@ -344,7 +344,7 @@ def body_clearance(origin, direction, mirror: ConeMirror, radius, gap) -> Float[
 
 def project_through_mirror(
     cam: Camera,
-    mirror: ConeMirror,
+    mirror: Mirror,
     p_cam: Float[Array, "3"],
     iters: int = 6,
     implicit: bool = True,
