@@ -48,13 +48,12 @@ from ..geometry.rig import (
     project_spots,
 )
 from ..observations.formats import Calibration, Observations, shape_missing
-from ..observations.problem import Layout, Packed, pack, stack_poses, unstack_poses
+from ..observations.problem import KIND_NAMES, Kind, Layout, Packed, kind_weights, pack, stack_poses, unstack_poses
 from ..support.persist import PersistentJit
 from ..support.safe import std_of_variance
 from .central import central_start
 from .lm import (
     CONVERGED,
-    KIND_NAMES,
     MAX_STEPS,
     RESULT_NAMES,
     Covariance,
@@ -110,7 +109,7 @@ def _solve(params: Params, arr: Packed, masks: Masks, loss: str, scale, max_step
         jnp.asarray(scale, dtype=float),
         jnp.asarray(max_steps),
         jnp.asarray(rtol, dtype=float),
-        _kind_weight(kind_weight),
+        kind_weights(kind_weight),
     )
 
 
@@ -217,11 +216,11 @@ def kind_sigmas(params: Params, pk: Packed, min_count: int = 10) -> np.ndarray:
 
 def _sigmas_of(norm, kind, ok, min_count: int = 10) -> np.ndarray:
     """:func:`kind_sigmas` of a per-observation table (``_per_observation``'s)."""
-    out = np.full(4, np.nan)
-    for k in range(4):
+    out = np.full(len(Kind), np.nan)
+    for k in Kind:
         sel = ok & (kind == k)
         if sel.sum() >= min_count:
-            out[k] = np.median(norm[sel]) / (HALF_NORMAL_MEDIAN if k == 2 else RAYLEIGH_MEDIAN)
+            out[k] = np.median(norm[sel]) / (HALF_NORMAL_MEDIAN if k == Kind.RIM else RAYLEIGH_MEDIAN)
     return out
 
 
@@ -596,10 +595,6 @@ def calibrate_many(
             bar.close()
 
 
-def _kind_weight(kind_weight) -> jnp.ndarray:
-    return jnp.asarray([1.0] * 4 if kind_weight is None else kind_weight, dtype=float)
-
-
 def _solve_loop(jobs: list[tuple], loss: str, max_steps: int, size: int | None = None) -> list[LMResult]:
     """Each job ``(params, arr, masks, scale, kind_weight, rtol)`` through the compiled solve (``size``: unused)."""
     return [_solve(p, a, m, loss, sc, max_steps, rt, kw) for p, a, m, sc, kw, rt in jobs]
@@ -646,7 +641,7 @@ def _solve_vmap(jobs: list[tuple], loss: str, max_steps: int, size: int | None =
         cols = list(zip(*[jobs[i] for i in take], strict=True))
         p, a, m = (jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *c) for c in cols[:3])
         sc = jnp.asarray(cols[3], dtype=float)
-        kw = jnp.stack([_kind_weight(k) for k in cols[4]])
+        kw = jnp.stack([kind_weights(k) for k in cols[4]])
         rt = jnp.asarray(cols[5], dtype=float)
         batch = (p, a, m, sc, kw, rt)
         if sharding is not None:
@@ -887,7 +882,7 @@ def _rigid_refine(res: CalibrationResult, obs: Observations, group: list[str], m
     model's, and ``box`` holds the boards' poses in the box with their std."""
     t0 = time.perf_counter()
     pk = res.packed
-    n_d = int(pk.counts[0])
+    n_d = int(pk.counts[Kind.DOT])
     dots_per_pose = np.bincount(np.asarray(pk.dot_pose)[:n_d], minlength=pk.n_poses)
     model = box_model(pk, group, usable=np.flatnonzero(dots_per_pose >= MIN_BOARD_DOTS))
     params = rigid_params(model, pk.pose_keys, unstack_poses(res.params.poses), res.rig, res.params.chess)
@@ -921,7 +916,7 @@ def _rigid_refine(res: CalibrationResult, obs: Observations, group: list[str], m
             )
         )
         norm, kind, ok = _per_observation(params, pr)
-        n_d = int(cur.counts[0])
+        n_d = int(cur.counts[Kind.DOT])
         pose_d = np.asarray(cur.dot_pose)[:n_d]
         dot_norm = np.where(ok[:n_d], norm[:n_d], np.inf)
         limit = max(MISFIT_SIGMAS * _robust_sigma_of(norm, kind, ok), MISFIT_MIN_PX)
@@ -945,7 +940,7 @@ def _rigid_refine(res: CalibrationResult, obs: Observations, group: list[str], m
                 }
             )
         left += new
-        n_s = int(cur.counts[1])
+        n_s = int(cur.counts[Kind.SPOT])
         cur = cur.select(~np.isin(pose_d, left), ~np.isin(np.asarray(cur.spot_pose)[:n_s], left))
     # linearised again at the solution: the rim rows normalised there, as the free covariance is
     layout, lin = _linearisation(params, model.packed(cur), masks, res.loss, res.scale)
@@ -1030,7 +1025,7 @@ def _relabel_spots(tr: "_Trial", fit) -> None:
         else:
             item["reason"] = f"lies on no laser's line, or on more than one (threshold {fit.threshold:.3g} px)"
         tr.repairs.append(item)
-    n_d, keep = int(tr.pk.counts[0]), fit.labels >= 0
+    n_d, keep = int(tr.pk.counts[Kind.DOT]), fit.labels >= 0
     every = tr.pk.select(np.ones(n_d, bool), np.ones(keep.size, bool), np.where(keep, fit.labels, own))
     tr.set_aside = (every, np.concatenate([np.zeros(n_d, bool), ~keep]))
     tr.use(every.select(np.ones(n_d, bool), keep))
@@ -1045,15 +1040,15 @@ def _outliers(tr: "_Trial", pk: Packed) -> tuple[np.ndarray, np.ndarray, np.ndar
     norm, kind, ok = _per_observation(tr.params, pk)
     # the sigmas of what the trial keeps: this table where ``pk`` is that problem
     sig = _sigmas_of(norm, kind, ok) if pk is tr.pk else kind_sigmas(tr.params, tr.pk)
-    n_d, n_s = int(pk.counts[0]), int(pk.counts[1])
+    n_d, n_s = int(pk.counts[Kind.DOT]), int(pk.counts[Kind.SPOT])
     bad = np.zeros(n_d + n_s, bool)
     # the residuals are smaller than the noise by the parameters they fix: the dots the board
     # poses (6 each), the spots the lasers (4 each); the median's sigma is scaled back up
-    kept_d, kept_s = int(tr.pk.counts[0]), int(tr.pk.counts[1])
-    sig[0] *= np.sqrt(2 * kept_d / max(2 * kept_d - 6 * tr.pk.n_poses, 1))
-    sig[1] *= np.sqrt(2 * kept_s / max(2 * kept_s - 4 * tr.obs.n_lasers, 1))
+    kept_d, kept_s = int(tr.pk.counts[Kind.DOT]), int(tr.pk.counts[Kind.SPOT])
+    sig[Kind.DOT] *= np.sqrt(2 * kept_d / max(2 * kept_d - 6 * tr.pk.n_poses, 1))
+    sig[Kind.SPOT] *= np.sqrt(2 * kept_s / max(2 * kept_s - 4 * tr.obs.n_lasers, 1))
     limit = np.maximum(OUTLIER_SIGMAS * sig, MIN_OUTLIER_PX)
-    for k in (0, 1):
+    for k in (Kind.DOT, Kind.SPOT):
         if np.isfinite(sig[k]):
             bad |= (ok & (kind == k) & (norm > limit[k]))[: n_d + n_s]
     bad |= ~ok[: n_d + n_s]  # predicted off the mirror or the sensor: out of the model's reach
@@ -1079,7 +1074,7 @@ def _leave_out(tr: "_Trial", starts, rerun, rounds: int = 3, find: bool = True) 
     left out is recorded in ``tr.repairs``.  ``find=False`` (the linear loss: a plain least-squares
     fit) looks for no outlier; only the spots set aside by their lines are judged again."""
     scale = tr.scale
-    none_aside = np.zeros(int(tr.pk.counts[0]) + int(tr.pk.counts[1]), bool)
+    none_aside = np.zeros(int(tr.pk.counts[Kind.DOT]) + int(tr.pk.counts[Kind.SPOT]), bool)
     full, aside = tr.set_aside if tr.set_aside is not None else (tr.pk, none_aside)
     out = aside & ~_predicted_fit(tr, full, aside)
     if not np.array_equal(out, aside):
@@ -1094,7 +1089,7 @@ def _leave_out(tr: "_Trial", starts, rerun, rounds: int = 3, find: bool = True) 
     # the residuals that left them out, for the records
     _, norm, kind, limit, valid = _outliers(tr, full)
     full, out = _bring_back(tr, full, aside, out, whole, rerun, scale)
-    n_d = int(full.counts[0])
+    n_d = int(full.counts[Kind.DOT])
     for i in np.flatnonzero(out & ~aside):  # those set aside and still out have their record
         if i < n_d:
             item = _dot_source(tr, i, full)
@@ -1119,7 +1114,7 @@ def _leave_out(tr: "_Trial", starts, rerun, rounds: int = 3, find: bool = True) 
 
 def _use_all_but(tr: "_Trial", full: Packed, out: np.ndarray) -> None:
     """The trial solves ``full`` without the rows where ``out`` holds (dots, then spots)."""
-    n_d = int(full.counts[0])
+    n_d = int(full.counts[Kind.DOT])
     tr.use(full.select(~out[:n_d], ~out[n_d:]))
 
 
@@ -1139,7 +1134,7 @@ def _robust_rounds(tr: "_Trial", full: Packed, out, starts, rerun, scale: float,
     """The outliers of ``full`` found under the Cauchy loss, left out, and the final pass run
     again on the rest until the set stays the same (see :func:`_leave_out`); ``out``: the rows
     left out so far.  Returns the rows left out and those of boards left out whole."""
-    n_d = int(full.counts[0])
+    n_d = int(full.counts[Kind.DOT])
     # graduated: at a wide scale first, where the good observations of a dragged board still
     # pull (at the final scale they may already count as outliers: a local minimum)
     rerun("cauchy", CAUCHY_WIDEN * scale)
@@ -1173,7 +1168,7 @@ def _bring_back(tr: "_Trial", full: Packed, aside, out, whole, rerun, scale: flo
     aside by its lines that its own line now predicts (:func:`_predicted_fit`).  The spots are
     kept only if they fit once refitted.  Records the changes; returns the problem (with the
     new labels) and the rows still left out."""
-    n_d, n_s = int(full.counts[0]), int(full.counts[1])
+    n_d, n_s = int(full.counts[Kind.DOT]), int(full.counts[Kind.SPOT])
     _, norm, _, limit, valid = _outliers(tr, full)
     cand = out & ~whole
     own = _predicted_fit(tr, full, cand & aside)
@@ -1226,7 +1221,7 @@ def _bring_back(tr: "_Trial", full: Packed, aside, out, whole, rerun, scale: flo
 def _take_spot_records(tr: "_Trial", full: Packed, rows) -> list[dict]:
     """Remove from ``tr.repairs`` the records of the spots in ``rows`` of ``full`` (counted
     after the dots) and return them."""
-    n_d = int(full.counts[0])
+    n_d = int(full.counts[Kind.DOT])
     keys = {(src["view"], src["index"]) for src in (_spot_source(tr, i - n_d, full) for i in rows)}
     mine = [r["kind"] == "spot" and (r["view"], r["index"]) in keys for r in tr.repairs]
     taken = [r for r, m in zip(tr.repairs, mine, strict=True) if m]
@@ -1239,15 +1234,15 @@ def _readmit(tr: "_Trial", full: Packed, aside: np.ndarray, out: np.ndarray) -> 
     _take_spot_records(tr, full, np.flatnonzero(aside & ~out))
 
 
-def _probe(tr: "_Trial", kind: int, **rows) -> tuple[np.ndarray, np.ndarray]:
+def _probe(tr: "_Trial", kind: Kind, **rows) -> tuple[np.ndarray, np.ndarray]:
     """Residual norms (px) and validity, at the trial's solution, of candidate rows of one kind
-    (0: dots, 1: spots; ``rows``: that kind's arrays, of one length) put in place of the
+    (dots or spots; ``rows``: that kind's arrays, of one length) put in place of the
     trial's own rows of that kind: how candidate labels are tried."""
     c = np.asarray(tr.pk.counts).copy()
     c[kind] = len(next(iter(rows.values())))
     probe = dataclasses.replace(tr.pk, counts=c, **{("dot_src", "spot_src")[kind]: ()}, **rows)
     norm, _, ok = _per_observation(tr.params, probe)
-    first = int(c[0]) if kind == 1 else 0
+    first = int(c[Kind.DOT]) if kind == Kind.SPOT else 0
     return norm[first : first + int(c[kind])], ok[first : first + int(c[kind])]
 
 
@@ -1255,7 +1250,7 @@ def _relaser(tr: "_Trial", full: Packed, candidates: np.ndarray, limit: float) -
     """For the spot rows of ``full`` where ``candidates`` holds: the one other laser whose spot on
     the row's board, at the trial's solution, lies within ``limit`` px of its pixel (row, counted
     after the dots, -> laser); rows with none or several are not listed."""
-    n_d, n_s = int(full.counts[0]), int(full.counts[1])
+    n_d, n_s = int(full.counts[Kind.DOT]), int(full.counts[Kind.SPOT])
     rows = np.flatnonzero(candidates[n_d : n_d + n_s])
     if not rows.size or tr.obs.n_lasers < 2:
         return {}
@@ -1263,7 +1258,7 @@ def _relaser(tr: "_Trial", full: Packed, candidates: np.ndarray, limit: float) -
     cand = [(j, k) for j in rows for k in range(tr.obs.n_lasers) if k != own[j]]
     norm, ok = _probe(
         tr,
-        1,
+        Kind.SPOT,
         spot_pose=np.asarray([full.spot_pose[j] for j, _ in cand], np.int64),
         spot_laser=np.asarray([k for _, k in cand], np.int64),
         spot_pixels=np.asarray([full.spot_pixels[j] for j, _ in cand], float),
@@ -1281,7 +1276,7 @@ def _regrid(tr: "_Trial", full: Packed, candidates: np.ndarray, limit: float) ->
     """For the dot rows of ``full`` where ``candidates`` holds: the one grid position of its
     board, not seen in its view, whose projection at the trial's solution lies within ``limit``
     px of its pixel (row -> position index); rows with none or several are not listed."""
-    n_d = int(full.counts[0])
+    n_d = int(full.counts[Kind.DOT])
     rows = [i for i in np.flatnonzero(candidates[:n_d])]
     if not rows or not full.dot_src:
         return {}
@@ -1301,7 +1296,7 @@ def _regrid(tr: "_Trial", full: Packed, candidates: np.ndarray, limit: float) ->
         return {}
     norm, ok = _probe(
         tr,
-        0,
+        Kind.DOT,
         dot_pose=np.asarray(pose, np.int64),
         dot_points=np.asarray(pts, float),
         dot_pixels=np.asarray(pix, float),
@@ -1595,13 +1590,15 @@ def report(result: CalibrationResult, obs: Observations) -> dict:
     """The ``residuals`` and ``uncertainty`` sections of the output (plain JSON types)."""
     norm, kind, ok, view, board, laser, index = _obs_table(result)
     sigma = float(result.cov.sigma)
-    outlier = ok & (kind <= 1) & (norm > 5.0 * sigma)
-    per_view = {obs.views[v].name: _rms(norm[ok & (kind <= 1) & (view == v)]) for v in range(len(obs.views))}
+    point = (kind == Kind.DOT) | (kind == Kind.SPOT)
+    outlier = ok & point & (norm > 5.0 * sigma)
+    per_view = {obs.views[v].name: _rms(norm[ok & point & (view == v)]) for v in range(len(obs.views))}
     boards = sorted({b for b in board if b})
-    per_board = {b: _rms(norm[ok & (kind == 0) & (board == b)]) for b in boards}
-    per_laser = {str(i): _rms(norm[ok & (kind == 1) & (laser == i)]) for i in range(obs.n_lasers)}
+    per_board = {b: _rms(norm[ok & (kind == Kind.DOT) & (board == b)]) for b in boards}
+    per_laser = {str(i): _rms(norm[ok & (kind == Kind.SPOT) & (laser == i)]) for i in range(obs.n_lasers)}
     per_direct = {
-        obs.calibration_views[c].name: _rms(norm[ok & (kind == 3) & (view == c)]) for c in result.packed.chess_keys
+        obs.calibration_views[c].name: _rms(norm[ok & (kind == Kind.CHESS) & (view == c)])
+        for c in result.packed.chess_keys
     }
     outliers = []
     for i in np.flatnonzero(outlier):
@@ -1612,14 +1609,14 @@ def report(result: CalibrationResult, obs: Observations) -> dict:
             "index": int(index[i]),
             "residual_px": float(norm[i]),
         }
-        if kind[i] == 1:
+        if kind[i] == Kind.SPOT:
             item["laser"] = int(laser[i])
         outliers.append(item)
     residuals = {
         "rms_px": _rms(norm[ok]),
         "sigma_px": sigma,
         "dof": int(result.cov.dof),
-        "by_kind_rms_px": {KIND_NAMES[k]: _rms(norm[ok & (kind == k)]) for k in range(4)},
+        "by_kind_rms_px": {k.label: _rms(norm[ok & (kind == k)]) for k in Kind},
         "by_kind_sigma_px": {k: (None if not np.isfinite(v) else v) for k, v in result.kind_sigma.items()},
         "per_view_rms_px": per_view,
         "per_board_rms_px": per_board,
@@ -1628,7 +1625,7 @@ def report(result: CalibrationResult, obs: Observations) -> dict:
         "invalid": int(np.sum(~ok)),
         "outliers": outliers,
         "repairs": result.repairs,
-        "rim_outliers": int(np.sum(ok & (kind == 2) & (norm > 5.0 * (result.kind_sigma.get("rim") or sigma)))),
+        "rim_outliers": int(np.sum(ok & (kind == Kind.RIM) & (norm > 5.0 * (result.kind_sigma.get("rim") or sigma)))),
         "loss": {"kind": result.loss, "scale_px": result.scale},
     }
     cov = np.asarray(result.cov.glob)

@@ -39,16 +39,12 @@ from jaxtyping import Array, Float
 
 from ..geometry.newton import exact_second_order
 from ..geometry.rig import laser_columns
-from ..observations.problem import Packed
+from ..observations.problem import Kind, Packed, kind_weights
 from . import lm as _lm
 from .lm import N_CAM, N_CM, N_LAS, Masks, Params
 
 N_G = N_CM + N_LAS  # the global part of an observation's local parameters (padded)
 DATA_FIELDS = ("dot_pixels", "spot_pixels", "rim_pixels", "chess_pixels", "dot_points", "chess_points")
-
-
-def _weights(kind_weight) -> Float[Array, "4"]:
-    return jnp.ones(4) if kind_weight is None else jnp.asarray(kind_weight, dtype=float)
 
 
 def _rho(r, k, robust: bool, loss: str, c):
@@ -91,14 +87,14 @@ def _observation_blocks(params: Params, pk: Packed, loss: str, scale, kind_weigh
     kw = jnp.asarray(kind_weight, dtype=float)
     c = jnp.asarray(scale, dtype=float)
 
-    def residual_grad(fun, kind, robust, n_glob, has_pose, has_point):
+    def residual_grad(fun, kind: Kind, n_glob, has_pose, has_point):
         """The local gradient of one observation's robust cost, as a function of [local | data]."""
 
         def cost(z, y, *args):
             d = jnp.concatenate([z[:n_glob], z[N_G:]]) if has_pose else z[:n_glob]
             px, xb = y[:2], y[2:]
             r, ok = fun(d, *args, xb, px) if has_point else fun(d, *args, px)
-            return jnp.where(ok, _rho(r, kw[kind], robust, loss, c), 0.0)
+            return jnp.where(ok, _rho(r, kw[kind], kind.robust, loss, c), 0.0)
 
         return lambda v, *args: jax.grad(cost)(v[:N_L], v[N_L:], *args)
 
@@ -114,7 +110,7 @@ def _observation_blocks(params: Params, pk: Packed, loss: str, scale, kind_weigh
         def cost(z2):
             c2, m2 = _lm._cm(cam, mir, z2)
             val, ok = _lm.rim_value(c2, m2, px)
-            return jnp.where(ok & (s > 0.0), 0.5 * kw[2] * (val / s) ** 2, 0.0)
+            return jnp.where(ok & (s > 0.0), 0.5 * kw[Kind.RIM] * (val / s) ** 2, 0.0)
 
         return jax.grad(cost)(z)
 
@@ -123,14 +119,14 @@ def _observation_blocks(params: Params, pk: Packed, loss: str, scale, kind_weigh
     out = []
     with exact_second_order():
         # dots: [camera, mirror | pose], data [pixel | board point]
-        f = residual_grad(lambda d, R, t, xb, px: _lm._dot(d, cam, mir, R, t, xb, px), 0, True, N_CM, True, True)
+        f = residual_grad(lambda d, R, t, xb, px: _lm._dot(d, cam, mir, R, t, xb, px), Kind.DOT, N_CM, True, True)
         y = jnp.concatenate([pk.dot_pixels, pk.dot_points], axis=1)
         gr, h, m = jax.vmap(_second_order(f))(y, params.poses.R[pk.dot_pose], params.poses.t[pk.dot_pose])
         n = y.shape[0]
         out.append((gr, h, m, jnp.broadcast_to(jnp.concatenate([cm, none]), (n, N_G)), pk.dot_pose))
         # spots: [camera, mirror, laser | pose], data [pixel | (none)]
         f = residual_grad(
-            lambda d, lp, ld, R, t, px: _lm._spot(d, cam, mir, lp, ld, R, t, px), 1, True, N_G, True, False
+            lambda d, lp, ld, R, t, px: _lm._spot(d, cam, mir, lp, ld, R, t, px), Kind.SPOT, N_G, True, False
         )
         y = jnp.concatenate([pk.spot_pixels, jnp.zeros((pk.spot_pixels.shape[0], 3))], axis=1)
         R, t = params.poses.R[pk.spot_pose], params.poses.t[pk.spot_pose]
@@ -144,7 +140,7 @@ def _observation_blocks(params: Params, pk: Packed, loss: str, scale, kind_weigh
         n = y.shape[0]
         out.append((gr, h, m, jnp.broadcast_to(jnp.concatenate([cm, none]), (n, N_G)), jnp.full(n, nb)))
         # chessboard corners: [camera | direct-view pose], data [pixel | board point]
-        f = residual_grad(lambda d, R, t, xb, px: _lm._chess(d, cam, R, t, xb, px), 3, False, N_CAM, True, True)
+        f = residual_grad(lambda d, R, t, xb, px: _lm._chess(d, cam, R, t, xb, px), Kind.CHESS, N_CAM, True, True)
         y = jnp.concatenate([pk.chess_pixels, pk.chess_points], axis=1)
         gr, h, m = jax.vmap(_second_order(f))(y, params.chess.R[pk.chess_pose], params.chess.t[pk.chess_pose])
         n = y.shape[0]
@@ -175,13 +171,8 @@ def _assemble(bl: _Blocks, g: int, nb: int, masks: Masks) -> _Hessian:
 
 
 def _schur_solve(hs: _Hessian, rg, rp):
-    """Solve ``H x = r`` for ``r = (rg (G, k), rp (NB, 6, k))`` by eliminating the pose blocks."""
-    Dinv_Bt = jnp.linalg.solve(hs.D, jnp.swapaxes(hs.B, 1, 2))  # (NB, 6, G)
-    Dinv_rp = jnp.linalg.solve(hs.D, rp)  # (NB, 6, k)
-    S = hs.A - jnp.einsum("bgi,bih->gh", hs.B, Dinv_Bt)
-    xg = jnp.linalg.solve(S, rg - jnp.einsum("bgi,bik->gk", hs.B, Dinv_rp))
-    xp = Dinv_rp - jnp.einsum("big,gk->bik", Dinv_Bt, xg)
-    return xg, xp
+    """Solve ``H x = r`` for ``r = (rg (G, k), rp (NB, 6, k))`` (:func:`slcvjax.calibration.lm.schur_solve`)."""
+    return _lm.schur_solve(hs.A, hs.B, hs.D, rg, rp)
 
 
 def _data_tangent(pk: Packed, dpk) -> Float[Array, "n 5"]:
@@ -255,7 +246,7 @@ def solution_tangent(
     holds tangents of the fields in :data:`DATA_FIELDS` (a :class:`Packed` of tangents,
     or any object with some of these attributes; missing ones count as zero).
     """
-    lin = _linearise_jit(params, pk, masks, loss, jnp.asarray(scale, dtype=float), _weights(kind_weight))
+    lin = _linearise_jit(params, pk, masks, loss, jnp.asarray(scale, dtype=float), kind_weights(kind_weight))
     return _tangent_jit(lin, masks, _data_tangent(pk, dpk))
 
 
@@ -273,7 +264,7 @@ def stationary_point(
     """
     last = np.inf
     for k in range(max_steps):
-        lin = _linearise_jit(params, pk, masks, loss, jnp.asarray(scale, dtype=float), _weights(kind_weight))
+        lin = _linearise_jit(params, pk, masks, loss, jnp.asarray(scale, dtype=float), kind_weights(kind_weight))
         size = float(jnp.maximum(jnp.max(jnp.abs(lin.step_g)), jnp.max(jnp.abs(lin.step_p), initial=0.0)))
         if not np.isfinite(size) or (k >= 2 and size > 0.5 * last):
             raise ValueError(f"Newton from the given solution does not converge (step {size:.3g} after {last:.3g})")
@@ -312,7 +303,7 @@ def differentiable_solution(
     """
     if loss not in _lm.LOSSES:
         raise ValueError(f"unknown loss {loss!r} (known: {', '.join(_lm.LOSSES)})")
-    return _pinned(params, pk, masks, loss, jnp.asarray(scale, dtype=float), _weights(kind_weight))
+    return _pinned(params, pk, masks, loss, jnp.asarray(scale, dtype=float), kind_weights(kind_weight))
 
 
 @jax.jit
@@ -368,7 +359,7 @@ def sensitivity(result, x_ref: np.ndarray | None = None) -> Sensitivity:
 
     pk = result.packed
     arr = pk.arrays()
-    kw = _weights(None)  # the final pass's kind weights
+    kw = kind_weights()  # the final pass's kind weights
     params, steps = stationary_point(result.params, arr, result.masks, result.loss, result.scale, kw)
     lin = _linearise_jit(params, arr, result.masks, result.loss, jnp.asarray(result.scale, dtype=float), kw)
     if x_ref is None:
@@ -376,7 +367,7 @@ def sensitivity(result, x_ref: np.ndarray | None = None) -> Sensitivity:
     xg, _ = _pixel_columns(lin, result.masks)
     xg = np.asarray(xg)
     counts = [pk.dot_pose.shape[0], pk.spot_pose.shape[0], pk.rim_pixels.shape[0], pk.chess_pose.shape[0]]
-    kind = np.repeat(np.repeat(np.arange(4), counts), 2)
+    kind = np.repeat(np.repeat(np.arange(len(Kind)), counts), 2)
     index = np.repeat(np.concatenate([np.arange(c) for c in counts]), 2)
     axis = np.tile(np.arange(2), sum(counts))
     rig = params.rig

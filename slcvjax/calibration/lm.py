@@ -47,7 +47,7 @@ from ..geometry.lasers import Lasers, line_plane_intersection
 from ..geometry.mirror import Mirror, project_through_mirror
 from ..geometry.pose import Pose
 from ..geometry.rig import CAMERA_DOF, LASER_DOF, MIRROR_DOF, Rig
-from ..observations.problem import Layout, Packed
+from ..observations.problem import ROBUST_KINDS, Kind, Layout, Packed, kind_weights
 from ..support.safe import safe_div, safe_norm
 
 N_CAM, N_MIR, N_LAS = CAMERA_DOF, MIRROR_DOF, LASER_DOF
@@ -214,12 +214,11 @@ class Rows(NamedTuple):
     jp: Float[Array, "n 6"]  # Jacobian w.r.t. the pose block
     pidx: Int[Array, " n"]  # pose block (NB = none)
     obs: Int[Array, " n"]  # observation id (for robust weights)
-    kind: Int[Array, " n"]  # 0 dot, 1 spot, 2 rim, 3 chess
+    kind: Int[Array, " n"]  # its Kind
     valid: Bool[Array, " n"]  # the model predicts the observation (False for padding too)
     present: Bool[Array, " n"]  # a real observation, not padding (see slcvjax.observations.problem)
 
 
-KIND_NAMES = ("dot", "spot", "rim", "chess")
 # observations per step of the loop in :func:`accumulate`: dots and spots, rim pixels, corners
 CHUNKS = (64, 256, 128)
 
@@ -337,7 +336,7 @@ def _groups(params: Params, pk: Packed, with_jac: bool, rim_norm: Array | None) 
             jnp.concatenate([pk.dot_pixels, pk.spot_pixels]),
             jnp.arange(n_d + n_s) >= n_d,
         ),
-        [(0, pk.counts[0]), (n_d, pk.counts[1])],
+        [(0, pk.counts[Kind.DOT]), (n_d, pk.counts[Kind.SPOT])],
         CHUNKS[0],
     )
 
@@ -355,7 +354,7 @@ def _groups(params: Params, pk: Packed, with_jac: bool, rim_norm: Array | None) 
         )
 
     norm = jax.lax.stop_gradient(rim_norms(rig, pk) if rim_norm is None else rim_norm)
-    rim_group = Group(rim, (pk.rim_pixels, norm), [(0, pk.counts[2])], CHUNKS[1])
+    rim_group = Group(rim, (pk.rim_pixels, norm), [(0, pk.counts[Kind.RIM])], CHUNKS[1])
 
     def chess(xb, px, pose, spot_chunk=None):
         R, t = params.chess.R[pose], params.chess.t[pose]
@@ -376,7 +375,7 @@ def _groups(params: Params, pk: Packed, with_jac: bool, rim_norm: Array | None) 
     chess_group = Group(
         chess,
         (pk.chess_points, pk.chess_pixels, pk.chess_pose),
-        [(0, pk.counts[3])],
+        [(0, pk.counts[Kind.CHESS])],
         CHUNKS[2],
     )
     return [dots_spots, rim_group, chess_group]
@@ -449,7 +448,7 @@ class ObservationTable(NamedTuple):
     """Per observation (in the order of :class:`Rows`' ids): what the robust loss and the reports use."""
 
     sq: Float[Array, " N"]  # squared residual norm (px^2), 0 where invalid
-    kind: Int[Array, " N"]  # 0 dot, 1 spot, 2 rim, 3 chess
+    kind: Int[Array, " N"]  # its Kind
     valid: Bool[Array, " N"]  # the model predicts it
     present: Bool[Array, " N"]  # real, not padding
     block: Int[Array, " N"]  # its pose block (NB = none)
@@ -472,7 +471,7 @@ def observation_table(rows: Rows, n_obs: int) -> ObservationTable:
 
 def block_costs(table: ObservationTable, n_blocks: int, loss: str, scale) -> Float[Array, " NB"]:
     """The robust cost of the observations of each pose block (dots and spots of a board)."""
-    _, rho = robust_observations(table, loss, jnp.asarray(scale, dtype=float), jnp.ones(4))
+    _, rho = robust_observations(table, loss, jnp.asarray(scale, dtype=float), kind_weights())
     return jax.ops.segment_sum(rho, table.block, num_segments=n_blocks + 1)[:n_blocks]
 
 
@@ -483,7 +482,7 @@ def robust_weights(rows: Rows, n_obs: int, loss: str, scale, kind_weight=None) -
     ``(sigma / sigma_kind)^2`` whitens a kind to the noise ``sigma`` before the robust loss,
     so that ``scale`` (in units of ``sigma``) suits every kind.
     """
-    kw = jnp.ones(4) if kind_weight is None else jnp.asarray(kind_weight, dtype=float)
+    kw = kind_weights(kind_weight)
     w, rho = robust_observations(observation_table(rows, n_obs), loss, scale, kw)
     return w[rows.obs], jnp.sum(rho)
 
@@ -523,9 +522,7 @@ def robust_observations(t: ObservationTable, loss: str, scale, kw) -> tuple[Arra
     """Per observation: its IRLS weight and its cost (an invalid one at a fixed penalty, padding 0)."""
     k = kw[t.kind]
     sq = k * t.sq  # whitened
-    # dots and spots; the rim and the chessboard corners stay plain (a robust rim made the
-    # lasers from rendered images worse in benchmarks/images_vs_file.py)
-    robust = t.kind <= 1
+    robust = jnp.asarray(ROBUST_KINDS)[t.kind]  # dots and spots (Kind.robust)
     rho, w = robust_cost(sq, loss, scale)
     w = jnp.where(robust, w, 1.0) * k
     rho = jnp.where(robust, rho, 0.5 * sq)
@@ -642,7 +639,7 @@ def accumulate(
     equations (the cost alone).
     """
     g, nb = params.n_global, params.n_blocks
-    kind_weight = jnp.ones(4) if kind_weight is None else jnp.asarray(kind_weight, dtype=float)
+    kind_weight = kind_weights(kind_weight)
     ne = zero_normal(g, nb)
     sq_parts, valid_parts = [], []
     cost = n_valid = wsq = jnp.asarray(0.0)
@@ -693,18 +690,31 @@ def accumulate(
     return Sums(ne, jnp.concatenate(sq_parts), jnp.concatenate(valid_parts), cost, n_valid, wsq)
 
 
+def schur_complement(A, B, D) -> tuple[Array, Array]:
+    """``(S, D^-1 B^T)`` of a Schur-form matrix ``[[A, B^T], [B, D]]`` whose pose part ``D`` is
+    block-diagonal: ``S = A - sum_k B_k D_k^-1 B_k^T`` (``B`` (NB, G, 6) holds each block's
+    coupling to the global columns, ``D`` (NB, 6, 6) the blocks)."""
+    Dinv_Bt = jnp.linalg.solve(D, jnp.swapaxes(B, 1, 2))  # (NB, 6, G)
+    return A - jnp.einsum("kgi,kih->gh", B, Dinv_Bt), Dinv_Bt
+
+
+def schur_solve(A, B, D, rg, rp) -> tuple[Array, Array]:
+    """Solve ``[[A, B^T], [B, D]] x = r`` for ``k`` right-hand sides ``r = (rg (G, k), rp (NB, 6, k))``
+    by eliminating the pose blocks (:func:`schur_complement`): the LM's step, the implicit
+    derivative's Newton step, tangents and pixel columns all solve through it."""
+    S, Dinv_Bt = schur_complement(A, B, D)
+    Dinv_rp = jnp.linalg.solve(D, rp)  # (NB, 6, k)
+    xg = jnp.linalg.solve(S, rg - jnp.einsum("kgi,kij->gj", B, Dinv_rp))
+    return xg, Dinv_rp - jnp.einsum("kig,gj->kij", Dinv_Bt, xg)
+
+
 def schur_step(ne: Normal, lam) -> tuple[Array, Array]:
     """The damped Gauss-Newton step by the Schur complement over the pose blocks."""
     A = ne.A + lam * jnp.diag(jnp.maximum(jnp.diag(ne.A), 1e-9))
     dd = jnp.maximum(jnp.diagonal(ne.D, axis1=1, axis2=2), 1e-9)
     D = ne.D + lam * jax.vmap(jnp.diag)(dd)
-    Dinv_Bt = jnp.linalg.solve(D, jnp.swapaxes(ne.B, 1, 2))  # (NB, 6, G)
-    Dinv_bp = jnp.linalg.solve(D, ne.bp[..., None])[..., 0]  # (NB, 6)
-    S = A - jnp.einsum("kgi,kih->gh", ne.B, Dinv_Bt)
-    rhs = -ne.bg + jnp.einsum("kgi,ki->g", ne.B, Dinv_bp)
-    dg = jnp.linalg.solve(S, rhs)
-    dp = -Dinv_bp - jnp.einsum("kig,g->ki", Dinv_Bt, dg)
-    return dg, dp
+    dg, dp = schur_solve(A, ne.B, D, -ne.bg[:, None], -ne.bp[..., None])
+    return dg[:, 0], dp[..., 0]
 
 
 def dense_step(ne: Normal, lam) -> tuple[Array, Array]:
@@ -808,7 +818,7 @@ def _cost(params, pk, loss, scale, kind_weight, rim_norm=None, real_only=True):
 def _table_arrays(params: Params, pk: Packed) -> tuple[Array, Array, Array]:
     """Per observation (dots, spots, rim pixels, corners): its kind, whether it is real, its pose block."""
     n_d, n_s, n_r, n_c = pk.dot_pose.shape[0], pk.spot_pose.shape[0], pk.rim_pixels.shape[0], pk.chess_pose.shape[0]
-    kind = jnp.concatenate([jnp.full(n_d, 0), jnp.full(n_s, 1), jnp.full(n_r, 2), jnp.full(n_c, 3)])
+    kind = jnp.concatenate([jnp.full(n, k, dtype=int) for n, k in zip((n_d, n_s, n_r, n_c), Kind, strict=True)])
     dot_block, spot_block = pk.dot_pose, pk.spot_pose
     if params.box is not None:
         dot_block, spot_block = pk.pair_block[dot_block], pk.pair_block[spot_block]
@@ -865,7 +875,7 @@ def solve(
     """
     loss = loss_index(loss)
     scale = jnp.asarray(scale, dtype=float)
-    kw = jnp.ones(4) if kind_weight is None else jnp.asarray(kind_weight, dtype=float)
+    kw = kind_weights(kind_weight)
 
     # the rim rows' normalisation is held at its value at the start: with it varying, the
     # cost would not be the function whose Jacobian the steps use, and near the minimum
@@ -936,10 +946,8 @@ class Covariance(NamedTuple):
 def schur_inverse(ne: Normal) -> tuple[Array, Array, Array]:
     """``(S^-1, D^-1, D^-1 B^T)``: the global block of ``H^-1`` (``S`` the Schur complement over
     the poses) and the pose blocks' pieces that give theirs."""
-    Dinv = jnp.linalg.inv(ne.D)
-    Dinv_Bt = jnp.einsum("kij,kgj->kig", Dinv, ne.B)
-    S = ne.A - jnp.einsum("kgi,kih->gh", ne.B, Dinv_Bt)
-    return jnp.linalg.inv(S), Dinv, Dinv_Bt
+    S, Dinv_Bt = schur_complement(ne.A, ne.B, ne.D)
+    return jnp.linalg.inv(S), jnp.linalg.inv(ne.D), Dinv_Bt
 
 
 def covariance_of_linearisation(lin: Linearisation, masks: Masks, sigma: float | Array | None = None) -> Covariance:

@@ -32,6 +32,7 @@ from ..geometry.pose import Pose, so3_exp
 from ..observations.formats import Observations, SpotObs, ViewObs, shape_missing
 from ..observations.problem import (
     POSE_LADDER,
+    Kind,
     Packed,
     bucket,
     map_padded,
@@ -186,18 +187,11 @@ def _circle_pose(y):
     return c, n / np.linalg.norm(n)
 
 
-def mirror_from_rim(
-    camera: Camera, rim_pixels: np.ndarray, radius: float, height: float, shape: dict | None = None
-) -> tuple[list[Mirror], StageReport]:
-    """Candidate mirror poses (one or two) from the rim's edge pixels: the rim circle of
-    ``radius`` at the sag ``height`` from the vertex, of a mirror of ``shape`` (None: the cone).
-
-    The circle is fitted from nine starting tilts; distinct solutions whose RMS is
-    within 1.5x of the best are returned, best first.  ``rms`` is in px (first order).
-    """
-    rim = np.asarray(rim_pixels, float).reshape(-1, 2)
-    if len(rim) < 5:
-        raise CalibrationError(f"views[*].rim: {len(rim)} rim pixels in all (need at least 5 to fit the rim circle)")
+def rim_circle_problem(camera: Camera, rim: np.ndarray, radius: float) -> tuple:
+    """The rim circle's fit as :func:`_fit_circle` takes it: ``(y0, rays, weight, radius, scale)``
+    with nine starting tilts ``y0`` (9, 5) about the circle of the rim pixels' ellipse, the
+    undistorted rays padded to a bucket (``weight`` 1 for a ray, 0 for padding) and the
+    residual's scale (px per mm at the rim's distance)."""
     xy, ok = map_padded(_undistort_many, camera, rows=rim)
     xy = np.asarray(xy)[np.asarray(ok)]
     rays = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
@@ -216,10 +210,22 @@ def mirror_from_rim(
     size = bucket(len(rays), 2048, 2)
     padded = pad_rows(rays, size, np.array([0.0, 0.0, 1.0]))
     weight = (np.arange(size) < len(rays)).astype(float)
-    ys, rmss = (
-        np.asarray(a)
-        for a in _fit_circles(jnp.asarray(y0), jnp.asarray(padded), jnp.asarray(weight), float(radius), float(scale))
-    )
+    return jnp.asarray(y0), jnp.asarray(padded), jnp.asarray(weight), float(radius), float(scale)
+
+
+def mirror_from_rim(
+    camera: Camera, rim_pixels: np.ndarray, radius: float, height: float, shape: dict | None = None
+) -> tuple[list[Mirror], StageReport]:
+    """Candidate mirror poses (one or two) from the rim's edge pixels: the rim circle of
+    ``radius`` at the sag ``height`` from the vertex, of a mirror of ``shape`` (None: the cone).
+
+    The circle is fitted from nine starting tilts; distinct solutions whose RMS is
+    within 1.5x of the best are returned, best first.  ``rms`` is in px (first order).
+    """
+    rim = np.asarray(rim_pixels, float).reshape(-1, 2)
+    if len(rim) < 5:
+        raise CalibrationError(f"views[*].rim: {len(rim)} rim pixels in all (need at least 5 to fit the rim circle)")
+    ys, rmss = (np.asarray(a) for a in _fit_circles(*rim_circle_problem(camera, rim, radius)))
     sols = [
         (float(rms), _circle_pose(y))
         for y, rms in zip(ys, rmss, strict=True)
@@ -492,7 +498,7 @@ def fit_lasers(
     line (fewer than 2 points, or all within 1 mm of each other).  With no lasers, no lines.
     """
     if n_lasers == 0:
-        n_s = int(pk.counts[1])
+        n_s = int(pk.counts[Kind.SPOT])
         none = Lasers.create(np.zeros((0, 3)), np.zeros((0, 3)))
         report = StageReport("lasers", float("nan"), "px", ["no lasers"])
         return LaserFit(none, report, np.full(n_s, -1), np.zeros((n_s, 0)), float("inf"))

@@ -17,6 +17,7 @@ of a problem and maps results back (:meth:`Layout.unpad_params`, ...).
 """
 
 import dataclasses
+import enum
 from typing import NamedTuple
 
 import equinox as eqx
@@ -30,6 +31,37 @@ from ..geometry.mirror import project_through_mirror
 from ..geometry.pose import Pose
 from ..geometry.rig import Rig
 from .formats import Observations
+
+
+class Kind(enum.IntEnum):
+    """The observation kinds, in the order of every per-kind array: :class:`Packed`'s counts,
+    the LM's rows and kind weights, the covariance's kind sigmas and the report's tables."""
+
+    DOT = 0  # a board dot seen through the mirror
+    SPOT = 1  # a laser spot seen through the mirror
+    RIM = 2  # a pixel of the mirror's rim
+    CHESS = 3  # a chessboard corner seen directly (or through the mirror, with no lasers)
+
+    @property
+    def label(self) -> str:
+        """The kind's name in files and reports (``dot``, ``spot``, ``rim``, ``chess``)."""
+        return self.name.lower()
+
+    @property
+    def robust(self) -> bool:
+        """Whether the robust loss applies: dots and spots (outliers are labelled points); the
+        rim and the corners stay plain least squares (a robust rim made the lasers from
+        rendered images worse in ``benchmarks/images_vs_file.py``)."""
+        return self in (Kind.DOT, Kind.SPOT)
+
+
+KIND_NAMES = tuple(k.label for k in Kind)
+ROBUST_KINDS = tuple(k.robust for k in Kind)
+
+
+def kind_weights(weight=None) -> Float[Array, "4"]:
+    """Each :class:`Kind`'s weight in a solve, as an array (``None``: every kind 1; 0 drops a kind)."""
+    return jnp.ones(len(Kind)) if weight is None else jnp.asarray(weight, dtype=float)
 
 
 class Packed(eqx.Module):
@@ -104,7 +136,7 @@ class Packed(eqx.Module):
         """The problem with only the dots and spots where ``keep_dots`` / ``keep_spots`` (bool,
         over the real rows) hold, and the spots' laser labels replaced by ``spot_laser`` (over
         the real rows, before the selection) where given.  Host arrays, keys kept."""
-        n_d, n_s = int(self.counts[0]), int(self.counts[1])
+        n_d, n_s = int(self.counts[Kind.DOT]), int(self.counts[Kind.SPOT])
         kd, ks = np.asarray(keep_dots, bool), np.asarray(keep_spots, bool)
         if kd.shape != (n_d,) or ks.shape != (n_s,):
             raise ValueError(f"select: masks of {n_d} dots and {n_s} spots expected, got {kd.shape} and {ks.shape}")
