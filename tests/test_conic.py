@@ -128,6 +128,31 @@ def test_implicit_derivative_matches_finite_differences(kind, R, conic, rng):
     np.testing.assert_allclose(J, fd, rtol=1e-5, atol=1e-6 * np.abs(fd).max())
 
 
+def test_second_derivatives_of_the_mirror_point_match_finite_differences(rng):
+    """A hyperboloid's reflection point's Hessian in the scene point (what the implicit
+    derivative of a calibration and the design's gradient differentiate) against central
+    differences of its exact first derivative, forward over reverse and reverse over reverse."""
+    kind, R, conic = SHAPES[2]
+    from slcvjax.geometry.mirror import solve_mirror_point
+
+    cam = paper_camera()
+    mirror = _mirror(kind, R, conic, apex=(2.0, 1.0, 60.0), axis=(-0.02, 0.01, 1.0))
+    m = _surface_samples(mirror, 1, rng)[0]
+    ray = back_project(cam, mirror, project(cam, jnp.asarray(m))[0])
+    p = jnp.asarray(np.asarray(ray.point) + 150.0 * np.asarray(ray.direction))
+
+    def point(q):
+        return solve_mirror_point(mirror, q)[0]
+
+    jac = jax.jit(jax.jacfwd(point))
+    h = 1e-3
+    fd = np.stack([(jac(p.at[i].add(h)) - jac(p.at[i].add(-h))) / (2 * h) for i in range(3)], axis=-1)
+    scale = np.abs(fd).max()
+    assert scale > 1e-6
+    for hess in (jax.jacfwd(jax.jacrev(point)), jax.jacrev(jax.jacrev(point))):
+        np.testing.assert_allclose(np.asarray(jax.jit(hess)(p)), fd, atol=1e-5 * scale)
+
+
 def test_points_off_the_mirror_are_invalid():
     cam = paper_camera()
     mirror = _mirror("hyperboloid", 20.0, -2.5)

@@ -11,7 +11,6 @@ from slcvjax.calibration import implicit as _implicit
 from slcvjax.calibration.calibrate import calibrate
 from slcvjax.geometry.camera import undistort
 from slcvjax.geometry.mirror import solve_mirror_point
-from slcvjax.geometry.newton import exact_second_order
 from slcvjax.observations.simulate import make_scene, simulate
 
 # the scene and noise of test_calibrate's joint test: its compiled LM is reused
@@ -46,45 +45,10 @@ def test_second_derivatives_of_the_reflection_point_are_exact():
         return solve_mirror_point(mir, q)[0]
 
     fd = _fd_hessian(point, p, 1e-3)
-    with exact_second_order():
-        exact = jax.jit(jax.jacfwd(jax.jacrev(point)))(p)
-    first_order = jax.jit(jax.jacfwd(jax.jacrev(point)))(p)
+    exact = jax.jit(jax.jacfwd(jax.jacrev(point)))(p)
     scale = float(jnp.max(jnp.abs(fd)))
     assert scale > 1e-4
     np.testing.assert_allclose(np.asarray(exact), np.asarray(fd), atol=1e-6 * scale)
-    # the first-order form is not good enough here (this is why the context exists)
-    assert float(jnp.max(jnp.abs(first_order - fd))) > 0.1 * scale
-
-
-def test_exact_second_order_holds_in_its_own_thread_only():
-    import threading
-
-    mir = make_scene("paper").rig.mirror
-    p = jnp.array([150.0, 41.0, 55.0])
-
-    def hessian():  # traced afresh in each call (no jit cache shared between them)
-        return np.asarray(jax.jacfwd(jax.jacrev(lambda q: solve_mirror_point(mir, q)[0]))(p))
-
-    first_order = hessian()
-    with exact_second_order():
-        exact = hessian()
-    assert np.max(np.abs(exact - first_order)) > 1e-6 * np.max(np.abs(exact))
-    inside, release, out = threading.Event(), threading.Event(), {}
-
-    def hold():
-        with exact_second_order():
-            inside.set()
-            release.wait(60)
-
-    t = threading.Thread(target=hold)
-    t.start()
-    try:
-        assert inside.wait(60)
-        out["other"] = hessian()  # this thread, while the other one is inside the context
-    finally:
-        release.set()
-        t.join()
-    np.testing.assert_array_equal(out["other"], first_order)
 
 
 def test_second_derivatives_of_undistortion_are_exact():
@@ -94,8 +58,7 @@ def test_second_derivatives_of_undistortion_are_exact():
     def xy(dist):
         return undistort(dataclasses.replace(cam, dist=dist), uv)[0]
 
-    with exact_second_order():
-        exact = jax.jacfwd(jax.jacrev(xy))(cam.dist)
+    exact = jax.jacfwd(jax.jacrev(xy))(cam.dist)
 
     fd = _fd_hessian(xy, cam.dist, 1e-6)
     np.testing.assert_allclose(np.asarray(exact), np.asarray(fd), atol=1e-6 * float(jnp.max(jnp.abs(fd))))

@@ -1,12 +1,12 @@
 """Newton with the implicit derivative against a root known in closed form: the value, first
-derivatives, second derivatives under ``exact_second_order``, the unrolled baseline, and the
+derivatives, exact second derivatives in every mode, the unrolled baseline, and the
 residual check that flags a system without a root."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from slcvjax.geometry.newton import exact_second_order, newton_implicit, newton_residual_norm
+from slcvjax.geometry.newton import newton_implicit, newton_residual_norm
 
 
 def f(x, theta):
@@ -40,14 +40,31 @@ def test_root_and_its_first_derivative():
     assert float(newton_residual_norm(f, root(THETA), THETA)) < 1e-12
 
 
-def test_second_derivative_is_exact_only_under_exact_second_order():
+def test_second_derivatives_are_exact_in_every_mode():
     ref = jax.hessian(closed_form)(THETA)
-    with exact_second_order():
-        exact = jax.hessian(root)(THETA)
-    np.testing.assert_allclose(exact, ref, rtol=1e-9, atol=1e-12)
-    # the one frozen-Jacobian step is exact to first order only: it misses the root's curvature
-    plain = jax.hessian(root)(THETA)
-    assert np.max(np.abs(plain - ref)) > 1e-3 * np.max(np.abs(ref))
+    for hess in (jax.hessian, lambda f: jax.jacfwd(jax.jacfwd(f)), lambda f: jax.jacrev(jax.jacrev(f))):
+        np.testing.assert_allclose(hess(root)(THETA), ref, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(jax.jit(hess(root))(THETA), ref, rtol=1e-9, atol=1e-12)
+    # a batch of roots under vmap: each its own
+    thetas = jnp.stack([THETA, jnp.array([9.0, -0.3])])
+    np.testing.assert_allclose(
+        jax.vmap(jax.hessian(root))(thetas), jax.vmap(jax.hessian(closed_form))(thetas), rtol=1e-9, atol=1e-12
+    )
+
+
+def test_the_first_derivative_costs_one_jacobian_of_the_residual():
+    """Under a first derivative the last step evaluates ``f``'s Jacobian once (as the plain
+    frozen step does): the traced program holds the loop's Jacobian and one more."""
+    calls = []
+
+    def counted(x, theta):
+        calls.append(1)
+        return f(x, theta)
+
+    jax.make_jaxpr(jax.jacfwd(lambda t: newton_implicit(counted, X0, t, 12)))(THETA)
+    # f traced twice for the loop's body (its value and its Jacobian) and twice for the last
+    # step's rule (its Jacobian in x and its jvp in theta): what the plain frozen step traced
+    assert len(calls) <= 4, len(calls)
 
 
 def test_a_system_without_a_root_is_flagged():

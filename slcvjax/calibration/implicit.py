@@ -14,7 +14,7 @@ solution), built observation by observation: each touches at most ``N_L`` (25) l
 so its Hessian and its mixed derivative in its own data are small dense blocks,
 scattered into the same Schur form as the normal equations and solved by eliminating
 the pose blocks.  The reflection point's Newton solve gives exact second derivatives
-here (:func:`slcvjax.geometry.newton.exact_second_order`).  One term is left out: the rim residual's
+here (:mod:`slcvjax.geometry.newton`).  One term is left out: the rim residual's
 normalisation ``|dF/duv|``, which the LM holds constant within a solve, is held
 constant here too (its variation enters multiplied by the rim residuals).
 
@@ -37,7 +37,6 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ..geometry.newton import exact_second_order
 from ..geometry.rig import laser_columns
 from ..observations.problem import Kind, Packed, kind_weights
 from . import lm as _lm
@@ -117,35 +116,32 @@ def _observation_blocks(params: Params, pk: Packed, loss: str, scale, kind_weigh
     cm = jnp.arange(N_CM)
     none = jnp.full(N_LAS, g)
     out = []
-    with exact_second_order():
-        # dots: [camera, mirror | pose], data [pixel | board point]
-        f = residual_grad(lambda d, R, t, xb, px: _lm._dot(d, cam, mir, R, t, xb, px), Kind.DOT, N_CM, True, True)
-        y = jnp.concatenate([pk.dot_pixels, pk.dot_points], axis=1)
-        gr, h, m = jax.vmap(_second_order(f))(y, params.poses.R[pk.dot_pose], params.poses.t[pk.dot_pose])
-        n = y.shape[0]
-        out.append((gr, h, m, jnp.broadcast_to(jnp.concatenate([cm, none]), (n, N_G)), pk.dot_pose))
-        # spots: [camera, mirror, laser | pose], data [pixel | (none)]
-        f = residual_grad(
-            lambda d, lp, ld, R, t, px: _lm._spot(d, cam, mir, lp, ld, R, t, px), Kind.SPOT, N_G, True, False
-        )
-        y = jnp.concatenate([pk.spot_pixels, jnp.zeros((pk.spot_pixels.shape[0], 3))], axis=1)
-        R, t = params.poses.R[pk.spot_pose], params.poses.t[pk.spot_pose]
-        gr, h, m = jax.vmap(_second_order(f))(y, las.points[pk.spot_laser], las.directions[pk.spot_laser], R, t)
-        lidx = N_CM + N_LAS * pk.spot_laser[:, None] + jnp.arange(N_LAS)[None, :]
-        gi = jnp.concatenate([jnp.broadcast_to(cm, (y.shape[0], N_CM)), lidx], axis=1)
-        out.append((gr, h, m, gi, pk.spot_pose))
-        # rim pixels: [camera, mirror], data [pixel]
-        y = jnp.concatenate([pk.rim_pixels, jnp.zeros((pk.rim_pixels.shape[0], 3))], axis=1)
-        gr, h, m = jax.vmap(_second_order(rim_grad))(y)
-        n = y.shape[0]
-        out.append((gr, h, m, jnp.broadcast_to(jnp.concatenate([cm, none]), (n, N_G)), jnp.full(n, nb)))
-        # chessboard corners: [camera | direct-view pose], data [pixel | board point]
-        f = residual_grad(lambda d, R, t, xb, px: _lm._chess(d, cam, R, t, xb, px), Kind.CHESS, N_CAM, True, True)
-        y = jnp.concatenate([pk.chess_pixels, pk.chess_points], axis=1)
-        gr, h, m = jax.vmap(_second_order(f))(y, params.chess.R[pk.chess_pose], params.chess.t[pk.chess_pose])
-        n = y.shape[0]
-        gi = jnp.broadcast_to(jnp.concatenate([jnp.arange(N_CAM), jnp.full(N_G - N_CAM, g)]), (n, N_G))
-        out.append((gr, h, m, gi, n_p + pk.chess_pose))
+    # dots: [camera, mirror | pose], data [pixel | board point]
+    f = residual_grad(lambda d, R, t, xb, px: _lm._dot(d, cam, mir, R, t, xb, px), Kind.DOT, N_CM, True, True)
+    y = jnp.concatenate([pk.dot_pixels, pk.dot_points], axis=1)
+    gr, h, m = jax.vmap(_second_order(f))(y, params.poses.R[pk.dot_pose], params.poses.t[pk.dot_pose])
+    n = y.shape[0]
+    out.append((gr, h, m, jnp.broadcast_to(jnp.concatenate([cm, none]), (n, N_G)), pk.dot_pose))
+    # spots: [camera, mirror, laser | pose], data [pixel | (none)]
+    f = residual_grad(lambda d, lp, ld, R, t, px: _lm._spot(d, cam, mir, lp, ld, R, t, px), Kind.SPOT, N_G, True, False)
+    y = jnp.concatenate([pk.spot_pixels, jnp.zeros((pk.spot_pixels.shape[0], 3))], axis=1)
+    R, t = params.poses.R[pk.spot_pose], params.poses.t[pk.spot_pose]
+    gr, h, m = jax.vmap(_second_order(f))(y, las.points[pk.spot_laser], las.directions[pk.spot_laser], R, t)
+    lidx = N_CM + N_LAS * pk.spot_laser[:, None] + jnp.arange(N_LAS)[None, :]
+    gi = jnp.concatenate([jnp.broadcast_to(cm, (y.shape[0], N_CM)), lidx], axis=1)
+    out.append((gr, h, m, gi, pk.spot_pose))
+    # rim pixels: [camera, mirror], data [pixel]
+    y = jnp.concatenate([pk.rim_pixels, jnp.zeros((pk.rim_pixels.shape[0], 3))], axis=1)
+    gr, h, m = jax.vmap(_second_order(rim_grad))(y)
+    n = y.shape[0]
+    out.append((gr, h, m, jnp.broadcast_to(jnp.concatenate([cm, none]), (n, N_G)), jnp.full(n, nb)))
+    # chessboard corners: [camera | direct-view pose], data [pixel | board point]
+    f = residual_grad(lambda d, R, t, xb, px: _lm._chess(d, cam, R, t, xb, px), Kind.CHESS, N_CAM, True, True)
+    y = jnp.concatenate([pk.chess_pixels, pk.chess_points], axis=1)
+    gr, h, m = jax.vmap(_second_order(f))(y, params.chess.R[pk.chess_pose], params.chess.t[pk.chess_pose])
+    n = y.shape[0]
+    gi = jnp.broadcast_to(jnp.concatenate([jnp.arange(N_CAM), jnp.full(N_G - N_CAM, g)]), (n, N_G))
+    out.append((gr, h, m, gi, n_p + pk.chess_pose))
     return _Blocks(*(jnp.concatenate(parts) for parts in zip(*out, strict=True)))
 
 

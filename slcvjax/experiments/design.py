@@ -13,8 +13,8 @@ at its working point and its direction error (as :func:`slcvjax.calibration.cali
 The **design** moves the sensor poses within a motion range to minimise the predicted
 error, by gradient descent through the bound.  Each coordinate of a pose is
 ``range * tanh(u)``, so every iterate stays in range.  The gradient differentiates the
-Jacobian itself, so the reflection point's second derivatives enter (exact, by
-:func:`slcvjax.geometry.newton.exact_second_order`).  Which points are visible and which wall a beam
+Jacobian itself, so the reflection point's second derivatives enter (exact: see
+:mod:`slcvjax.geometry.newton`).  Which points are visible and which wall a beam
 meets are decided at the current poses and held while differentiating (they change
 discretely); a step is accepted only when the bound, re-evaluated with the new
 visibility, goes down (Adam steps with a backtracking length; a view whose visibility a
@@ -40,7 +40,6 @@ from ..calibration.calibrate import _laser_offset
 from ..calibration.lm import N_LAS, Params
 from ..geometry.lasers import line_plane_intersection
 from ..geometry.mirror import project_through_mirror
-from ..geometry.newton import exact_second_order
 from ..geometry.pose import Pose, so3_exp
 from ..geometry.rig import Rig, laser_columns, project_rim
 from ..observations.problem import Packed
@@ -193,8 +192,7 @@ def calibration_covariance(views, rig, T_bw, chess, pk, sigma, n_v):
     w_dot, w_spot, x_ref = _weights(rig, poses, pk, n_v)
     w_dot, w_spot = jax.lax.stop_gradient(w_dot), jax.lax.stop_gradient(w_spot)
     params = Params(rig, poses, chess)
-    with exact_second_order():
-        rows = _lm._rows(params, pk)  # differentiated in reverse mode
+    rows = _lm._rows(params, pk)  # differentiated in reverse mode
     n_d, n_s = pk.dot_pose.shape[0], pk.spot_pose.shape[0]
     n_obs = _lm.n_observations(pk)
     w_obs = jnp.concatenate([w_dot, w_spot, jnp.ones(n_obs - n_d - n_s, dtype=bool)]).astype(float)

@@ -42,7 +42,6 @@ import optax
 from ..geometry.camera import project
 from ..geometry.lasers import Lasers
 from ..geometry.mirror import BODY_CLEAR_FAR, body_clearance, project_through_mirror, solve_mirror_point
-from ..geometry.newton import exact_second_order
 from ..geometry.rig import Rig
 from ..images.pipe import beam_pipe_point
 from ..measurement.measure import _circle_sensitivity, triangulate_spot
@@ -194,8 +193,7 @@ def _evaluate(u, start, ranges, rig0, views, T_bw, chess, pk, sigma, n_v, radii,
     the wall spots per laser, whether each emitter is seen."""
     rig = Rig(rig0.camera, rig0.mirror, _lasers_at(u, start, ranges))
     cov, _, w_spot, _ = calibration_covariance(views, rig, T_bw, chess, pk, sigma, n_v)
-    with exact_second_order():  # the points' Jacobians are differentiated again
-        var_d, seen, rim, body_m, img, angle = jax.vmap(lambda r: _pipe_prediction(rig, cov, sigma, r, body))(radii)
+    var_d, seen, rim, body_m, img, angle = jax.vmap(lambda r: _pipe_prediction(rig, cov, sigma, r, body))(radii)
     wall = jax.ops.segment_sum(w_spot.astype(int), pk.spot_laser, num_segments=rig.lasers.n)
     # a laser with too few wall spots is not calibrated: its bound (and every diameter) is undetermined
     var_d = jnp.where((jnp.min(wall) >= MIN_SPOTS) & (var_d > 0.0), var_d, jnp.inf)

@@ -10,13 +10,15 @@ constant:
 At convergence ``f(x_k, theta) = 0`` so the value does not move, while the
 derivative of that last step with respect to ``theta`` is exactly the implicit
 function theorem's ``dx*/dtheta = -J^-1 df/dtheta``.  The cost of a Jacobian is
-therefore one Newton step, not the unrolled loop.  ``implicit=False`` instead
-differentiates through every iteration (kept for the benchmark's baseline).
+therefore one Newton step, not the unrolled loop.  The last step carries a custom JVP
+written with the root itself, so that derivatives of every order are exact (the second
+derivatives that the implicit derivative of a calibration's solution and the bound's
+gradient in experiment design need), while a first derivative costs what the plain frozen
+step costs.  ``implicit=False`` instead differentiates through every iteration (kept for
+the benchmark's baseline).
 """
 
-import contextlib
 import functools
-import threading
 from collections.abc import Callable
 
 import jax
@@ -24,35 +26,6 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
 from ..support.safe import solve2x2
-
-# per thread: a calibration tracing in one thread (``calibrate_many(workers=2)``) must not see
-# another thread's design or implicit derivative switch the roots to their exact form
-_SECOND_ORDER = threading.local()
-
-
-def _second_order() -> bool:
-    return getattr(_SECOND_ORDER, "on", False)
-
-
-@contextlib.contextmanager
-def exact_second_order():
-    """Within this context (while tracing), derivatives of a root are exact to every order.
-
-    The one frozen-Jacobian step gives exact first derivatives only: its second
-    derivative misses the root's own curvature.  Inside the context the converged root
-    carries a custom JVP, ``dx = -J(x, theta)^-1 df/dtheta dtheta``, written with ``x``
-    itself (so differentiating the rule again differentiates the root again): the
-    second derivatives that the implicit derivative of a calibration's solution needs
-    (:mod:`slcvjax.calibration.implicit`) and the bound's gradient in experiment design.  It acts at trace
-    time, in the calling thread only: functions already compiled outside it keep their
-    first-order form, and other threads trace as before.
-    """
-    old = _second_order()
-    _SECOND_ORDER.on = True
-    try:
-        yield
-    finally:
-        _SECOND_ORDER.on = old
 
 
 def _step(f, x, theta):
@@ -78,6 +51,27 @@ def _exact_root_jvp(f, primals, tangents):
     return x, -solve2x2(jax.jacfwd(f)(x, theta), fdot)
 
 
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _last_step(f, x, theta):
+    """One Newton step ``x - J^-1 f(x, theta)`` from a converged ``x`` (which carries no
+    derivative): its derivative in ``theta`` is the implicit function theorem's,
+    ``-J^-1 df/dtheta``, to every order."""
+    return _step(f, x, theta)
+
+
+@_last_step.defjvp
+def _last_step_jvp(f, primals, tangents):
+    x, theta = primals
+    _, dtheta = tangents
+    # the Jacobian and the residual once, for the value and the derivative alike (the cost
+    # of the plain frozen step); ``xr`` is ``x`` with the root's own derivative, which only a
+    # second derivative sees
+    xr = _exact_root(f, x, theta)
+    jac = jax.jacfwd(f)(xr, theta)
+    fx, fdot = jax.jvp(lambda th: f(xr, th), (theta,), (dtheta,))
+    return xr - solve2x2(jac, fx), -solve2x2(jac, fdot)
+
+
 def newton_implicit(
     f: Callable[[Float[Array, "2"], PyTree], Float[Array, "2"]],
     x0: Float[Array, "2"],
@@ -93,11 +87,7 @@ def newton_implicit(
         return x
     theta_sg = jax.lax.stop_gradient(theta)
     x = jax.lax.fori_loop(0, iters, lambda _, x: _step(f, x, theta_sg), jax.lax.stop_gradient(x0))
-    x = jax.lax.stop_gradient(x)
-    if _second_order():
-        return _exact_root(f, x, theta)
-    jac = jax.lax.stop_gradient(jax.jacfwd(f)(x, theta_sg))
-    return x - solve2x2(jac, f(x, theta))
+    return _last_step(f, jax.lax.stop_gradient(x), theta)
 
 
 def newton_residual_norm(f, x, theta) -> Array:
