@@ -31,6 +31,11 @@ whose Jacobian they use (the global rows are gathered into a dense matrix, so th
 Robust loss (dots and spots): Huber or Cauchy on each observation's 2D residual norm
 with scale ``c`` px, by iteratively reweighted least squares inside LM.  The loop is one
 ``lax.while_loop`` (jit- and vmap-able) and returns a result code, never raises.
+
+Hand-written rather than optimistix's ``LevenbergMarquardt``: on the preset's 16 views from
+the same perturbed truth, this solve took 243 ms (6 steps) and optimistix's on the same
+residuals (a dense Jacobian) 82 s (124 steps), in one run of ``benchmarks/bench_calibrate.py``
+(``benchmarks/results/calibrate_optimistix.json``).
 """
 
 from typing import NamedTuple
