@@ -58,7 +58,7 @@ def test_second_derivatives_of_undistortion_are_exact():
     def xy(dist):
         return undistort(dataclasses.replace(cam, dist=dist), uv)[0]
 
-    exact = jax.jacfwd(jax.jacrev(xy))(cam.dist)
+    exact = jax.jit(jax.jacfwd(jax.jacrev(xy)))(cam.dist)
 
     fd = _fd_hessian(xy, cam.dist, 1e-6)
     np.testing.assert_allclose(np.asarray(exact), np.asarray(fd), atol=1e-6 * float(jnp.max(jnp.abs(fd))))
