@@ -1,5 +1,6 @@
 """Shared helpers for the tests: random rigs and central finite differences."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -59,3 +60,9 @@ def central_diff(f, x: np.ndarray, eps: float = 1e-6) -> np.ndarray:
         e[idx] = eps
         out[(...,) + idx] = (np.asarray(f(jnp.asarray(x + e))) - np.asarray(f(jnp.asarray(x - e)))) / (2 * eps)
     return out
+
+
+# one pixel's back-projection and one point's projection through the mirror, over a batch, jitted
+# (the camera and mirror as arguments: one compilation serves every mirror of a kind)
+back_project_many = jax.jit(jax.vmap(sj.back_project, in_axes=(None, None, 0)))
+project_many = jax.jit(jax.vmap(sj.project_through_mirror, in_axes=(None, None, 0)))

@@ -11,8 +11,7 @@ from slcvjax.geometry.conic import AsphereMirror, ConicMirror
 from slcvjax.geometry.mirror import back_project, project_through_mirror
 from slcvjax.observations.simulate import paper_camera
 
-_back_project_many = jax.jit(jax.vmap(back_project, in_axes=(None, None, 0)))
-_project_many = jax.jit(jax.vmap(project_through_mirror, in_axes=(None, None, 0)))
+from ._helpers import back_project_many, project_many
 
 APEX, AXIS = [0.6, -0.4, 48.0], [0.02, -0.015, 1.0]
 COEFFS = [1.5e-5, -2e-8]  # rho^4, rho^6 (1/mm^3, 1/mm^5)
@@ -52,7 +51,7 @@ def test_an_asphere_reflects_by_its_profile():
     cam = paper_camera()
     m = _mirror()
     uv = _pixels(cam)
-    rays = _back_project_many(cam, m, uv)
+    rays = back_project_many(cam, m, uv)
     ok = np.asarray(rays.valid)
     assert ok.sum() > 30
     a = np.asarray(m.axis)
@@ -75,12 +74,12 @@ def test_an_asphere_reflects_by_its_profile():
         d_in = p / np.linalg.norm(p)
         np.testing.assert_allclose(d, d_in - 2 * (d_in @ n) * n, atol=1e-6)
     pts = np.asarray(rays.point)[ok] + 250.0 * np.asarray(rays.direction)[ok]
-    proj = _project_many(cam, m, pts)
+    proj = project_many(cam, m, pts)
     assert np.all(np.asarray(proj.valid))
     np.testing.assert_allclose(np.asarray(proj.uv), uv[ok], atol=1e-6)
     x = pts[0]
     jac = np.asarray(jax.jit(jax.jacfwd(lambda x: project_through_mirror(cam, m, x).uv))(x))
-    uv_pm = np.asarray(_project_many(cam, m, np.concatenate([x + 1e-4 * np.eye(3), x - 1e-4 * np.eye(3)])).uv)
+    uv_pm = np.asarray(project_many(cam, m, np.concatenate([x + 1e-4 * np.eye(3), x - 1e-4 * np.eye(3)])).uv)
     fd = ((uv_pm[:3] - uv_pm[3:]) / 2e-4).T
     np.testing.assert_allclose(jac, fd, rtol=1e-5, atol=1e-7)
 

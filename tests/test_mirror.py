@@ -8,11 +8,9 @@ from hypothesis import strategies as st
 import slcvjax as sj
 from slcvjax.support.safe import orthonormal_basis
 
-from ._helpers import central_diff, random_camera, random_mirror
+from ._helpers import back_project_many, central_diff, project_many, random_camera, random_mirror
 from ._reference import RefRig
 
-back_project_many = jax.jit(jax.vmap(sj.back_project, in_axes=(None, None, 0)))
-project_many = jax.jit(jax.vmap(sj.project_through_mirror, in_axes=(None, None, 0)))
 solve_many = jax.jit(jax.vmap(sj.solve_mirror_point, in_axes=(None, 0)))
 _back_project_one = jax.jit(sj.back_project)
 _project_one = jax.jit(sj.project_through_mirror)

@@ -10,10 +10,8 @@ import slcvjax as sj
 from slcvjax import cli
 from slcvjax.observations.simulate import make_scene, simulate
 
+from ._helpers import back_project_many, project_many
 from ._reference import RefRig
-
-_back = jax.jit(jax.vmap(sj.back_project, in_axes=(None, None, 0)))
-_proj = jax.jit(jax.vmap(sj.project_through_mirror, in_axes=(None, None, 0)))
 
 
 @pytest.fixture(scope="module")
@@ -51,13 +49,13 @@ def test_noise_free_dots_lie_on_their_back_projected_rays(exact):
         for b, (px, seen) in view.boards.items():
             x = np.asarray(poses[b].apply(jnp.asarray(obs.boards[b])))
             # every dot of the board at once (one shape, one compilation), the seen ones checked
-            ray = _back(rig.camera, rig.mirror, jnp.asarray(np.where(seen[:, None], px, 0.0)))
+            ray = back_project_many(rig.camera, rig.mirror, jnp.asarray(np.where(seen[:, None], px, 0.0)))
             assert bool(np.all(np.asarray(ray.valid)[seen]))
             dist = _ray_distance(np.asarray(ray.point)[seen], np.asarray(ray.direction)[seen], x[seen])
             assert dist.max() < 1e-6
             n_seen += int(seen.sum())
             # what is not written is really not visible
-            res = _proj(rig.camera, rig.mirror, jnp.asarray(x))
+            res = project_many(rig.camera, rig.mirror, jnp.asarray(x))
             assert not np.any(np.asarray(res.valid)[~seen])
     assert n_seen >= 0.9 * 16 * 36
 
@@ -120,7 +118,7 @@ def test_lasers_are_visible_inside_a_150_mm_pipe(exact):
     b = 2 * (p[:, 0] * d[:, 0] + p[:, 1] * d[:, 1])
     c = p[:, 0] ** 2 + p[:, 1] ** 2 - 75.0**2
     lam = (-b + np.sqrt(b * b - 4 * a * c)) / (2 * a)
-    res = _proj(rig.camera, rig.mirror, jnp.asarray(p + lam[:, None] * d))
+    res = project_many(rig.camera, rig.mirror, jnp.asarray(p + lam[:, None] * d))
     assert bool(np.all(res.valid))
 
 

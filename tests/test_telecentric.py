@@ -14,10 +14,10 @@ from slcvjax.geometry.mirror import ConeMirror, back_project, project_through_mi
 from slcvjax.geometry.rig import Rig
 from slcvjax.observations.simulate import box_scene, paper_views, simulate
 
+from ._helpers import back_project_many, project_many
+
 _NO_LASERS = Lasers.create(np.zeros((0, 3)), np.zeros((0, 3)))
 W, H = 800, 700
-_back_project_many = jax.jit(jax.vmap(back_project, in_axes=(None, None, 0)))
-_project_many = jax.jit(jax.vmap(project_through_mirror, in_axes=(None, None, 0)))
 
 
 def _camera(dist=(0.0, 0.0, 0.0, 0.0, 0.0), unit=20.0, f=18.0):
@@ -83,18 +83,18 @@ def test_telecentric_projection_inverts_back_projection(mirror):
     ang, rad = rng.uniform(0, 2 * np.pi, 60), r_px * np.sqrt(rng.uniform(0.05, 1.0, 60))
     uv = np.array([cam.cx, cam.cy]) + rad[:, None] * np.stack([np.cos(ang), np.sin(ang)], axis=1)
     uv = uv[(uv[:, 0] > 5) & (uv[:, 0] < W - 5) & (uv[:, 1] > 5) & (uv[:, 1] < H - 5)]
-    rays = _back_project_many(cam, mirror, uv)
+    rays = back_project_many(cam, mirror, uv)
     ok = np.asarray(rays.valid)
     assert ok.sum() > 30
     pts = np.asarray(rays.point)[ok] + rng.uniform(100.0, 400.0, (ok.sum(), 1)) * np.asarray(rays.direction)[ok]
-    proj = _project_many(cam, mirror, pts)
+    proj = project_many(cam, mirror, pts)
     assert np.all(np.asarray(proj.valid))
     np.testing.assert_allclose(np.asarray(proj.uv), uv[ok], atol=1e-6)
     x = pts[0]
     jac = np.asarray(jax.jit(jax.jacfwd(lambda x: project_through_mirror(cam, mirror, x).uv))(x))
     h = 1e-4
     steps = np.concatenate([x + h * np.eye(3), x - h * np.eye(3)])
-    uv_pm = np.asarray(_project_many(cam, mirror, steps).uv)
+    uv_pm = np.asarray(project_many(cam, mirror, steps).uv)
     fd = ((uv_pm[:3] - uv_pm[3:]) / (2 * h)).T
     np.testing.assert_allclose(jac, fd, rtol=1e-5, atol=1e-7)
 
