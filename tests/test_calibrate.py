@@ -194,6 +194,32 @@ def test_schur_step_equals_dense_step(scene):
     assert float(jnp.abs(ps[params.poses.t.shape[0] :]).max()) == 0.0
 
 
+def test_predicted_decrease_is_the_linear_models():
+    """On a linear least-squares problem the Gauss-Newton model is exact: the decrease that
+    :func:`lm.predicted_decrease` predicts for the damped Schur step equals
+    ``|r|^2 / 2 - |r + J d|^2 / 2`` computed from the rows themselves, at every damping."""
+    rng = np.random.default_rng(3)
+    g, nb, rows_per_block = 4, 3, 9
+    Jg = rng.normal(size=(nb * rows_per_block, g))
+    Jp = rng.normal(size=(nb, rows_per_block, 6))
+    r = rng.normal(size=nb * rows_per_block)
+    rb = r.reshape(nb, rows_per_block)
+    Jgb = Jg.reshape(nb, rows_per_block, g)
+    ne = _lm.Normal(
+        jnp.asarray(Jg.T @ Jg),
+        jnp.asarray(Jg.T @ r),
+        jnp.asarray(np.einsum("kng,knp->kgp", Jgb, Jp)),
+        jnp.asarray(np.einsum("knp,knq->kpq", Jp, Jp)),
+        jnp.asarray(np.einsum("knp,kn->kp", Jp, rb)),
+    )
+    for lam in [0.0, 1e-3, 0.5, 10.0]:
+        dg, dp = _lm.schur_step(ne, lam)
+        moved = rb + np.einsum("kng,g->kn", Jgb, np.asarray(dg)) + np.einsum("knp,kp->kn", Jp, np.asarray(dp))
+        actual = 0.5 * (r @ r) - 0.5 * np.sum(moved**2)
+        assert float(_lm.predicted_decrease(ne, lam, dg, dp)) == pytest.approx(actual, rel=1e-10)
+        assert actual > 0
+
+
 def test_lm_gradient_is_the_gradient_of_its_cost(scene):
     """The LM's ``J^T W r`` against central differences of the cost it accepts steps by.
 
