@@ -381,10 +381,10 @@ def held_out_rms(rig: Rig, held: Observations) -> tuple[float, int, int]:
 
 
 def _auto_kind(obs: Observations, freeze, loss, loss_scale, max_steps) -> "CalibrationResult":
-    """``mirror_shape.kind = "auto"``: each of :data:`AUTO_KINDS` fitted with
-    :data:`AUTO_FOLDS`-fold cross-validation over the views (every fifth view held out in turn),
-    the kind of the least held-out RMS (fewest held-out observations off the model first) then
-    fitted on every view; the stage ``mirror_kind`` reports each kind's figure, and says so where
+    """``mirror_shape.kind = "auto"``: each of :data:`AUTO_KINDS` fitted on every view, then
+    scored by :data:`AUTO_FOLDS`-fold cross-validation over the views (every fifth view held out
+    in turn, each fold's fit started from the fit on every view); the kind of the least held-out
+    RMS (fewest held-out observations off the model first) is kept; the stage ``mirror_kind`` reports each kind's figure, and says so where
     kinds lie within two standard errors of the best (the views do not determine the kind: a
     camera's distortion and the mirror's place absorb much of a shape's difference)."""
     from tqdm.auto import tqdm
@@ -397,30 +397,42 @@ def _auto_kind(obs: Observations, freeze, loss, loss_scale, max_steps) -> "Calib
     dims = {key: obs.mirror_shape[key] for key in ("vertex_radius",) if key in obs.mirror_shape}
     scores: dict[str, tuple[int, float]] = {}
     counted: dict[str, int] = {}
-    with tqdm(total=len(AUTO_KINDS) * k, desc="mirror kind (held-out views)", leave=False, disable=None) as bar:
+    fits: dict[str, CalibrationResult] = {}
+    with tqdm(total=len(AUTO_KINDS) * (k + 1), desc="mirror kind (held-out views)", leave=False, disable=None) as bar:
         for kind in AUTO_KINDS:
             o_kind = dataclasses.replace(obs, mirror_shape={"kind": kind} | dims)
+            kind_freeze, estimate = _shape_unknowns(o_kind.mirror_shape, freeze)
             sq, used, bad = 0.0, 0, 0
-            for fold in folds:
-                train = dataclasses.replace(o_kind, views=[v for i, v in enumerate(obs.views) if i not in fold])
-                held = dataclasses.replace(o_kind, views=[obs.views[i] for i in fold])
-                try:
-                    fit = _through_the_mirror(train, freeze, loss, loss_scale, max_steps)
-                    rms, n_used, n_bad = held_out_rms(fit.rig, held)
-                except CalibrationError:
-                    sq, used, bad = np.inf, 1, n
-                    bar.update(len(folds) - folds.index(fold))
-                    break
-                sq, used, bad = sq + rms * rms * n_used, used + n_used, bad + n_bad
+            try:
+                # every view from each central start; each fold's fit starts from it (one start:
+                # the fold's own minimum, the held-out views' residuals left out of its cost)
+                fits[kind] = full = _through_the_mirror(o_kind, freeze, loss, loss_scale, max_steps)
                 bar.update(1)
+                for fold in folds:
+                    train = dataclasses.replace(o_kind, views=[v for i, v in enumerate(obs.views) if i not in fold])
+                    held = dataclasses.replace(o_kind, views=[obs.views[i] for i in fold])
+                    fit = _calibrate_lockstep(
+                        [train],
+                        full.rig.camera,
+                        kind_freeze,
+                        loss,
+                        loss_scale,
+                        max_steps,
+                        _solve_loop,
+                        mirror=full.rig.mirror,
+                        estimate=estimate,
+                    )[0]
+                    rms, n_used, n_bad = held_out_rms(fit.rig, held)
+                    sq, used, bad = sq + rms * rms * n_used, used + n_used, bad + n_bad
+                    bar.update(1)
+            except CalibrationError:
+                sq, used, bad = np.inf, 1, n
             scores[kind] = (bad, float(np.sqrt(sq / max(used, 1))))
             counted[kind] = used
     best = min(AUTO_KINDS, key=lambda kd: scores[kd])
     if not np.isfinite(scores[best][1]):
         raise CalibrationError("mirror_shape.kind: no kind of mirror fits these views")
-    res = _through_the_mirror(
-        dataclasses.replace(obs, mirror_shape={"kind": best} | dims), freeze, loss, loss_scale, max_steps
-    )
+    res = fits[best]
     notes = [
         f"{kd}: held-out RMS {scores[kd][1]:.4f} px"
         + (f", {scores[kd][0]} held-out observation(s) off the model" if scores[kd][0] else "")
@@ -440,17 +452,23 @@ def _auto_kind(obs: Observations, freeze, loss, loss_scale, max_steps) -> "Calib
     return res
 
 
+def _shape_unknowns(shape: dict, freeze) -> tuple[set, set]:
+    """``(freeze, estimate)`` for a mirror of ``shape`` seen through only: a sphere's or a
+    paraboloid's conic constant is its kind's, a hyperboloid's (or an ellipsoid's) left out is
+    estimated; a sphere's axis is held (its vertex slides over it with the axis: only its centre
+    is seen)."""
+    estimate = {"shape"} if "conic_constant" in shape_missing(shape) else set()
+    freeze = set(freeze) | ({"mirror_tilt"} if shape["kind"] == "sphere" else set())
+    return freeze, estimate
+
+
 def _through_the_mirror(obs: Observations, freeze, loss, loss_scale, max_steps) -> "CalibrationResult":
     """A rig seen only through its mirror (no direct views): the joint passes from each central
     start (:func:`slcvjax.calibration.central.central_start`), the lowest final cost kept.  Where the shape leaves
     out the conic constant, the start searches it and the joint passes estimate it (the vertex
     radius held: the scale's gauge)."""
     shape = obs.mirror_shape
-    # a sphere's or a paraboloid's conic constant is its kind's; a hyperboloid's (or an
-    # ellipsoid's) left out is estimated
-    estimate = {"shape"} if "conic_constant" in shape_missing(shape) else set()
-    if shape["kind"] == "sphere":  # its vertex slides over it with its axis: only its centre is seen
-        freeze = set(freeze) | {"mirror_tilt"}
+    freeze, estimate = _shape_unknowns(shape, freeze)
     kind = shape["kind"]
     if kind == "asphere":  # started as its conic, then given its polynomial terms
         kind = conic_kind(shape["conic_constant"])
