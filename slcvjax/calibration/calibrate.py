@@ -384,9 +384,10 @@ def _auto_kind(obs: Observations, freeze, loss, loss_scale, max_steps) -> "Calib
     """``mirror_shape.kind = "auto"``: each of :data:`AUTO_KINDS` fitted on every view, then
     scored by :data:`AUTO_FOLDS`-fold cross-validation over the views (every fifth view held out
     in turn, each fold's fit started from the fit on every view); the kind of the least held-out
-    RMS (fewest held-out observations off the model first) is kept; the stage ``mirror_kind`` reports each kind's figure, and says so where
-    kinds lie within two standard errors of the best (the views do not determine the kind: a
-    camera's distortion and the mirror's place absorb much of a shape's difference)."""
+    RMS (fewest held-out observations off the model first) is kept; the stage ``mirror_kind``
+    reports each kind's figure, and says so where kinds lie within two standard errors of the
+    best (the views do not determine the kind: a camera's distortion and the mirror's place
+    absorb much of a shape's difference)."""
     from tqdm.auto import tqdm
 
     n = len(obs.views)
