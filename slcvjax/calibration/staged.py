@@ -127,15 +127,21 @@ def calibrate_intrinsics(obs: Observations, flags: int = 0) -> tuple[Camera, dic
 # ----------------------------------------------------------------------------- 2. mirror from the rim
 
 
-def _rim_residual(y, args):
-    rays, radius, scale, weight = args
-    c, tilt = y[:3], y[3:]
+def _circle_normal(c, tilt):
+    """The rim circle's normal: the line of sight to its centre ``c`` tilted by ``tilt`` (2,)
+    along the basis ``(e1, e2)`` across it (``e1`` across the image's y axis)."""
     n0 = c / jnp.linalg.norm(c)
     e1 = jnp.cross(n0, jnp.array([0.0, 1.0, 0.0]))
     e1 = e1 / jnp.linalg.norm(e1)
     e2 = jnp.cross(n0, e1)
     n = n0 + tilt[0] * e1 + tilt[1] * e2
-    n = n / jnp.linalg.norm(n)
+    return n / jnp.linalg.norm(n)
+
+
+def _rim_residual(y, args):
+    rays, radius, scale, weight = args
+    c = y[:3]
+    n = _circle_normal(c, y[3:])
     lam = jnp.dot(c, n) / (rays @ n)
     x = lam[:, None] * rays
     return (jnp.linalg.norm(x - c, axis=1) - radius) * scale * weight
@@ -182,13 +188,8 @@ _fit_circles = PersistentJit(jax.vmap(_fit_circle, in_axes=(0, None, None, None,
 
 
 def _circle_pose(y):
-    c, tilt = np.asarray(y[:3]), np.asarray(y[3:])
-    n0 = c / np.linalg.norm(c)
-    e1 = np.cross(n0, [0.0, 1.0, 0.0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(n0, e1)
-    n = n0 + tilt[0] * e1 + tilt[1] * e2
-    return c, n / np.linalg.norm(n)
+    y = np.asarray(y)
+    return y[:3], np.asarray(_circle_normal(jnp.asarray(y[:3]), jnp.asarray(y[3:])))
 
 
 def rim_circle_problem(camera: Camera, rim: np.ndarray, radius: float) -> tuple:
@@ -297,10 +298,7 @@ def _flipped(R: np.ndarray, t: np.ndarray, xb: np.ndarray, mask: np.ndarray) -> 
     s = np.linalg.norm(axis, axis=1, keepdims=True)
     ang = np.arctan2(s[:, 0], np.sum(n * n2, axis=1))
     axis = np.where(s > 1e-12, axis / np.maximum(s, 1e-300), 0.0)
-    k = np.zeros((len(axis), 3, 3))  # Rodrigues, batched: Q = I + sin(ang) K + (1 - cos(ang)) K^2
-    k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -axis[:, 2], axis[:, 1], -axis[:, 0]
-    k = k - k.transpose(0, 2, 1)
-    Q = np.eye(3) + np.sin(ang)[:, None, None] * k + (1 - np.cos(ang))[:, None, None] * (k @ k)
+    Q = np.asarray(jax.vmap(so3_exp)(jnp.asarray(axis * ang[:, None]))).reshape(-1, 3, 3)
     R2 = Q @ R
     return R2, centre - np.einsum("pij,pj->pi", R2, xbar)
 
