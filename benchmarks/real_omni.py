@@ -121,7 +121,9 @@ def run_set(name: str, obs: Observations, reference: dict, cv: bool, model=DEFAU
         "corners": sum(int(s.sum()) for v in obs.views for _, s in v.boards.values()),
         "train_rms_px": float(rep["rms_px"]),
         "train_invalid": int(rep["invalid"]),
-        "converged": all(p.converged for p in res.passes),
+        # the last pass converged, each before it converged or ran to its scheduled limit
+        "converged": res.converged and all(p.finished for p in res.passes),
+        "passes": [[p.name, p.steps, p.result] for p in res.passes],
         "seconds": secs,
         "model": {"mirror_shape": model[0], "camera_projection": model[1], "fitted_kind": res.rig.mirror.kind},
         "start": {"rms_px": start.rms, "notes": start.notes},
