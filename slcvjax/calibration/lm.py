@@ -713,10 +713,16 @@ def schur_solve(A, B, D, rg, rp) -> tuple[Array, Array]:
     return xg, Dinv_rp - jnp.einsum("kig,gj->kij", Dinv_Bt, xg)
 
 
+def damping_diagonal(ne: Normal) -> tuple[Array, Array]:
+    """Marquardt's scaling: the normal matrix's diagonal (floored at 1e-9), global ``(G,)`` and
+    per pose block ``(NB, 6)``; the step damps by ``lam`` times it."""
+    return jnp.maximum(jnp.diag(ne.A), 1e-9), jnp.maximum(jnp.diagonal(ne.D, axis1=1, axis2=2), 1e-9)
+
+
 def schur_step(ne: Normal, lam) -> tuple[Array, Array]:
     """The damped Gauss-Newton step by the Schur complement over the pose blocks."""
-    A = ne.A + lam * jnp.diag(jnp.maximum(jnp.diag(ne.A), 1e-9))
-    dd = jnp.maximum(jnp.diagonal(ne.D, axis1=1, axis2=2), 1e-9)
+    da, dd = damping_diagonal(ne)
+    A = ne.A + lam * jnp.diag(da)
     D = ne.D + lam * jax.vmap(jnp.diag)(dd)
     dg, dp = schur_solve(A, ne.B, D, -ne.bg[:, None], -ne.bp[..., None])
     return dg[:, 0], dp[..., 0]
@@ -725,9 +731,8 @@ def schur_step(ne: Normal, lam) -> tuple[Array, Array]:
 def predicted_decrease(ne: Normal, lam, dg: Array, dp: Array) -> Array:
     """The cost decrease the Gauss-Newton model predicts for the damped step ``(dg, dp)`` of
     :func:`schur_step`: ``-(g.d + d.H d / 2) = d.(lam M d - g) / 2``, with ``M`` the damping's
-    diagonal (as there)."""
-    da = jnp.maximum(jnp.diag(ne.A), 1e-9)
-    dd = jnp.maximum(jnp.diagonal(ne.D, axis1=1, axis2=2), 1e-9)
+    diagonal (:func:`damping_diagonal`)."""
+    da, dd = damping_diagonal(ne)
     return 0.5 * (jnp.dot(dg, lam * da * dg - ne.bg) + jnp.sum(dp * (lam * dd * dp - ne.bp)))
 
 
