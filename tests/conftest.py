@@ -21,6 +21,34 @@ def pytest_configure(config):
     settings.load_profile("slcv")
 
 
+# SLCVJAX_TEST_COMPILE_LOG=FILE: append one JSON line per test with its wall seconds and what JAX
+# compiled during it (count, backend-compile and trace seconds), to find where the suite's time goes
+_COMPILE_LOG = os.environ.get("SLCVJAX_TEST_COMPILE_LOG")
+_compiled = {"n": 0, "compile": 0.0, "trace": 0.0}
+if _COMPILE_LOG:
+
+    def _listen(event, duration, **kw):
+        if event == "/jax/core/compile/backend_compile_duration":
+            _compiled["n"] += 1
+            _compiled["compile"] += duration
+        elif event == "/jax/core/compile/jaxpr_trace_duration":
+            _compiled["trace"] += duration
+
+    jax.monitoring.register_event_duration_secs_listener(_listen)
+
+    @pytest.hookimpl(hookwrapper=True)
+    def pytest_runtest_protocol(item, nextitem):
+        import json
+        import time
+
+        before, t0 = dict(_compiled), time.perf_counter()
+        yield
+        row = {"test": item.nodeid, "seconds": round(time.perf_counter() - t0, 2)}
+        row.update({k: round(_compiled[k] - before[k], 2) for k in _compiled})
+        with open(_COMPILE_LOG, "a") as f:
+            f.write(json.dumps(row) + "\n")
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(1234)
