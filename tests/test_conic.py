@@ -14,6 +14,8 @@ from slcvjax.geometry.conic import ConicMirror
 from slcvjax.geometry.mirror import back_project, intersect, project_through_mirror, reflect, surface_normal
 from slcvjax.observations.simulate import paper_camera
 
+from ._helpers import back_project_many, project_many
+
 # (kind, vertex radius R, conic constant) with a rim of 25 mm
 SHAPES = [("sphere", 40.0, None), ("paraboloid", 30.0, None), ("hyperboloid", 20.0, -2.5), ("ellipsoid", 40.0, -0.5)]
 SHAPES += [("ellipsoid", 40.0, 0.5)]
@@ -93,16 +95,13 @@ def test_projection_inverts_back_projection(kind, R, conic, rng):
     cam = paper_camera()
     mirror = _mirror(kind, R, conic, apex=(3.0, -2.0, 60.0), axis=(0.03, -0.02, 1.0))
     uv = np.stack([np.asarray(project(cam, jnp.asarray(m))[0]) for m in _surface_samples(mirror, 12, rng)])
-    proj = jax.jit(lambda p: project_through_mirror(cam, mirror, p))
-    for px in uv:
-        ray = back_project(cam, mirror, jnp.asarray(px))
-        assert bool(ray.valid)
-        for dist in (80.0, 400.0):
-            p = np.asarray(ray.point) + dist * np.asarray(ray.direction)
-            res = proj(jnp.asarray(p))
-            assert bool(res.valid)
-            np.testing.assert_allclose(np.asarray(res.uv), px, atol=1e-6)
-            np.testing.assert_allclose(np.asarray(res.mirror_point), np.asarray(ray.point), atol=1e-6)
+    rays = back_project_many(cam, mirror, jnp.asarray(uv))
+    assert np.all(np.asarray(rays.valid))
+    for dist in (80.0, 400.0):
+        res = project_many(cam, mirror, rays.point + dist * rays.direction)
+        assert np.all(np.asarray(res.valid))
+        np.testing.assert_allclose(np.asarray(res.uv), uv, atol=1e-6)
+        np.testing.assert_allclose(np.asarray(res.mirror_point), np.asarray(rays.point), atol=1e-6)
 
 
 def _uv_moved(x, cam, mirror, p):
@@ -116,6 +115,7 @@ _uv_many = jax.jit(jax.vmap(_uv_moved, in_axes=(0, None, None, None)))
 
 
 @pytest.mark.parametrize(("kind", "R", "conic"), SHAPES[:4])
+@pytest.mark.slow
 def test_implicit_derivative_matches_finite_differences(kind, R, conic, rng):
     cam = paper_camera()
     mirror = _mirror(kind, R, conic, apex=(2.0, 1.0, 60.0), axis=(-0.02, 0.01, 1.0))
@@ -130,6 +130,7 @@ def test_implicit_derivative_matches_finite_differences(kind, R, conic, rng):
     np.testing.assert_allclose(J, fd, rtol=1e-5, atol=1e-6 * np.abs(fd).max())
 
 
+@pytest.mark.slow
 def test_second_derivatives_of_the_mirror_point_match_finite_differences(rng):
     """A hyperboloid's reflection point's Hessian in the scene point (what the implicit
     derivative of a calibration and the design's gradient differentiate) against central
@@ -159,8 +160,8 @@ def test_points_off_the_mirror_are_invalid():
     cam = paper_camera()
     mirror = _mirror("hyperboloid", 20.0, -2.5)
     # behind the mirror's surface (inside its body), on its axis and off it
-    for p in ([0.0, 0.0, 200.0], [5.0, 0.0, 90.0]):
-        assert not bool(project_through_mirror(cam, mirror, jnp.asarray(p)).valid)
+    res = project_many(cam, mirror, jnp.asarray([[0.0, 0.0, 200.0], [5.0, 0.0, 90.0]]))
+    assert not np.any(np.asarray(res.valid))
 
 
 def test_of_kind_checks_the_shape():
@@ -184,6 +185,7 @@ def _conic_rig(kind="paraboloid", R=20.0, conic=None, n_lasers=5):
     return Rig(base.camera, mirror, base.lasers)
 
 
+@pytest.mark.slow
 def test_conic_shapes_round_trip_through_the_files(tmp_path):
     from slcvjax.observations.formats import (
         Calibration,
@@ -218,6 +220,7 @@ def test_conic_shapes_round_trip_through_the_files(tmp_path):
         read_observations(tmp_path / "bad.json")
 
 
+@pytest.mark.slow
 def test_a_paraboloid_rig_calibrates_near_its_bound():
     """The whole pipeline (rim, PnP through the mirror, the joint passes) with a paraboloid."""
     from slcvjax.calibration.calibrate import calibrate, cramer_rao, laser_errors
@@ -244,6 +247,7 @@ def test_rendering_refuses_a_conic_mirror(tmp_path):
         render_scene(box_scene(_conic_rig(), paper_views(2), n_chess_views=1), tmp_path)
 
 
+@pytest.mark.slow
 def test_a_catadioptric_camera_without_lasers_calibrates_from_the_cli(tmp_path, capsys):
     """A hyperboloid rig with no lasers (``n_lasers: 0``): the file read, the rig calibrated,
     the calibration written with no lasers and its mirror within its reported std."""

@@ -19,7 +19,12 @@ def rig():
     return paper_rig()
 
 
+# one compilation for every spot and rig of these tests (run op by op, each spot compiled its own)
+_triangulate = jax.jit(triangulate_spot)
+
+
 @pytest.mark.parametrize("n_lasers,diameter,tilt", [(10, 150.0, 0.0), (6, 130.0, 4.0)])
+@pytest.mark.slow
 def test_exact_pixels_give_exact_points_and_diameters(n_lasers, diameter, tilt):
     rig = paper_rig(n_lasers)
     scene = pipe_scene(rig, diameter, n_poses=5, tilt_deg=tilt, seed=3)
@@ -38,7 +43,7 @@ def test_point_lies_on_the_laser_line_and_near_the_ray(rig):
     scene = pipe_scene(rig, n_poses=1, seed=1)
     obs, _ = simulate_pipe(scene, noise=0.3, seed=2)
     for s in obs.views[0].spots:
-        sp = triangulate_spot(rig, jnp.asarray(s.laser), jnp.asarray(s.pixel))
+        sp = _triangulate(rig, jnp.asarray(s.laser), jnp.asarray(s.pixel))
         p, d = np.asarray(rig.lasers.points[s.laser]), np.asarray(rig.lasers.directions[s.laser])
         v = np.asarray(sp.xyz) - p
         assert np.linalg.norm(v - (v @ d) * d) < 1e-9  # on the line
@@ -49,12 +54,12 @@ def test_parallel_ray_and_line_is_invalid_with_finite_gradients(rig):
     from slcvjax import back_project
 
     uv = jnp.array([420.0, 200.0])
-    ray = back_project(rig.camera, rig.mirror, uv)
+    ray = jax.jit(back_project)(rig.camera, rig.mirror, uv)
     las = Lasers(ray.point[None] + jnp.array([[0.0, 0.0, 5.0]]), ray.direction[None])
     r2 = Rig(rig.camera, rig.mirror, las)
-    sp = triangulate_spot(r2, jnp.asarray(0), uv)
+    sp = _triangulate(r2, jnp.asarray(0), uv)
     assert not bool(sp.valid)
-    g = jax.jacfwd(lambda u: triangulate_spot(r2, jnp.asarray(0), u).xyz)(uv)
+    g = jax.jit(jax.jacfwd(lambda u: triangulate_spot(r2, jnp.asarray(0), u).xyz))(uv)
     assert np.all(np.isfinite(np.asarray(g)))
 
 
@@ -62,8 +67,8 @@ def test_pixel_jacobian_matches_finite_differences(rig):
     scene = pipe_scene(rig, n_poses=1, seed=4)
     obs, _ = simulate_pipe(scene, noise=0.0)
     s = obs.views[0].spots[0]
-    f = lambda u: triangulate_spot(rig, jnp.asarray(s.laser), u).xyz  # noqa: E731
-    jac = np.asarray(jax.jacfwd(f)(jnp.asarray(s.pixel)))
+    f = jax.jit(lambda u: triangulate_spot(rig, jnp.asarray(s.laser), u).xyz)
+    jac = np.asarray(jax.jit(jax.jacfwd(f))(jnp.asarray(s.pixel)))
     h = 1e-4
     fd = np.stack(
         [(np.asarray(f(jnp.asarray(s.pixel + h * e))) - np.asarray(f(jnp.asarray(s.pixel - h * e)))) / (2 * h)
@@ -72,6 +77,7 @@ def test_pixel_jacobian_matches_finite_differences(rig):
     np.testing.assert_allclose(jac, fd, rtol=1e-5, atol=1e-6 * np.abs(fd).max())
 
 
+@pytest.mark.slow
 def test_circle_fit_std_matches_monte_carlo():
     rng = np.random.default_rng(0)
     ang = np.sort(rng.uniform(0, 2 * np.pi, 10))
@@ -94,6 +100,7 @@ def test_circle_needs_three_points():
         fit_circle(np.array([[0.0, 0.0], [1.0, 1.0], [2.0, 2.0]]))
 
 
+@pytest.mark.slow
 def test_reported_point_std_matches_the_error_at_half_a_pixel(rig):
     """With the true rig at 0.5 px: RMS point error / reported std in [0.8, 1.25] (points used)."""
     scene = pipe_scene(rig, n_poses=16, seed=0)
@@ -112,6 +119,7 @@ def test_reported_point_std_matches_the_error_at_half_a_pixel(rig):
     assert 0.7 < np.std(d_err) / np.sqrt(np.mean(d_std**2)) < 1.3
 
 
+@pytest.mark.slow
 def test_calibration_covariance_propagates_like_monte_carlo(rig):
     """Points from exact pixels with the rig perturbed by N(0, cov): spread == J cov J^T."""
     scene = pipe_scene(rig, n_poses=1, seed=5)
@@ -145,6 +153,7 @@ def pipe_files(tmp_path_factory, rig):
     return d, obs
 
 
+@pytest.mark.slow
 def test_measure_command_writes_points(pipe_files):
     d, obs = pipe_files
     out = d / "points.json"
@@ -167,6 +176,7 @@ def _fails(capsys, argv, *needles):
         assert n in err, err
 
 
+@pytest.mark.slow
 def test_measure_bad_inputs(pipe_files, tmp_path, capsys):
     d, obs = pipe_files
     out = str(tmp_path / "p.json")
@@ -199,6 +209,7 @@ def test_measure_bad_inputs(pipe_files, tmp_path, capsys):
     assert not os.path.exists(out)
 
 
+@pytest.mark.slow
 def test_pipe_command_writes_points_and_plots(tmp_path, capsys):
     out = tmp_path / "pipe"
     assert cli.main(["pipe", "--poses", "3", "--noise", "0.05", "--out", str(out)]) == 0
@@ -208,6 +219,7 @@ def test_pipe_command_writes_points_and_plots(tmp_path, capsys):
         assert (out / name).stat().st_size > 0
 
 
+@pytest.mark.slow
 def test_a_spot_with_a_wrong_laser_label_is_flagged_not_fitted():
     rig = paper_rig(6)
     scene = pipe_scene(rig, 140.0, n_poses=6, seed=4)
@@ -231,6 +243,7 @@ def test_a_spot_with_a_wrong_laser_label_is_flagged_not_fitted():
 
 
 @pytest.mark.parametrize("mirror_kind", ["hyperboloid", "sphere", "telecentric paraboloid"])
+@pytest.mark.slow
 def test_the_pipe_is_measured_through_other_mirrors(mirror_kind):
     """The 150 mm pipe at 16 poses measured through a conic mirror (and before a telecentric
     camera), the exact rig, 0.3 px: every spot gives a point, the points' error against the truth
