@@ -32,6 +32,7 @@ def _pixels(cam, n=60, seed=0):
     return np.array([cam.cx, cam.cy]) + rng.uniform(-180, 180, (n, 2))
 
 
+@pytest.mark.slow
 def test_an_asphere_without_terms_is_its_conic():
     cam = paper_camera()
     a, c = _mirror([0.0, 0.0]), ConicMirror.create(APEX, AXIS, 1 / 20.0, -1.5, 20.0)
@@ -43,6 +44,7 @@ def test_an_asphere_without_terms_is_its_conic():
     np.testing.assert_allclose(np.asarray(ra.direction)[ok], np.asarray(rc.direction)[ok], atol=1e-12)
 
 
+@pytest.mark.slow
 def test_an_asphere_reflects_by_its_profile():
     """Back-projected rays: the mirror point on the written-out profile (1e-9 mm), the law of
     reflection about the normal of that profile by central differences (1e-6), and points along
@@ -105,6 +107,7 @@ def test_an_asphere_is_checked_and_kept_in_files(tmp_path):
         read_calibration(tmp_path / "bad.json")
 
 
+@pytest.mark.slow
 def test_a_rig_through_an_asphere_calibrates():
     """The asphere given (a datasheet's), 8 views of the walls through it: the camera within 4
     reported std of the truth and 4 unseen views predicted at the noise."""

@@ -6,6 +6,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 # a fresh process: import slcvjax, compile a small function, report the cache folder and
 # how many compilations were read from the cache
 PROBE = """
@@ -33,6 +35,7 @@ def entries(folder: Path) -> list[Path]:
     return [p for p in folder.glob("*") if p.is_file() and not p.name.startswith(".")] if folder.exists() else []
 
 
+@pytest.mark.slow
 def test_on_by_default_in_the_user_cache_folder(tmp_path):
     res, _ = run_probe({"XDG_CACHE_HOME": str(tmp_path), "HOME": str(tmp_path)})
     assert res["dir"] == str(tmp_path / "slcvjax")
@@ -63,6 +66,7 @@ def test_unwritable_folder_warns_once_and_runs_uncached(tmp_path):
     assert len(lines) == 1 and str(blocker / "cache") in lines[0]
 
 
+@pytest.mark.slow
 def test_two_processes_share_a_folder_at_once(tmp_path):
     folder = tmp_path / "shared"
     env = {key: v for key, v in os.environ.items() if not key.startswith(("SLCVJAX_", "JAX_COMPILATION"))}
@@ -105,6 +109,7 @@ print(json.dumps({"a": np.asarray(a["y"]).tolist(), "b": float(b["s"]), "c": np.
 """
 
 
+@pytest.mark.slow
 def test_traced_programs_persist_across_processes(tmp_path):
     env = {key: v for key, v in os.environ.items() if not key.startswith(("SLCVJAX_", "JAX_COMPILATION"))}
     env["SLCVJAX_CACHE_DIR"] = str(tmp_path)

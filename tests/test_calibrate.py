@@ -49,6 +49,7 @@ def _truth_params(truth, pk):
     return _lm.Params(truth.rig, poses, chess)
 
 
+@pytest.mark.slow
 def test_staged_pipeline_recovers_the_truth_from_exact_observations(exact):
     obs, truth = exact
     st = staged(obs)
@@ -61,6 +62,7 @@ def test_staged_pipeline_recovers_the_truth_from_exact_observations(exact):
     assert np.degrees(ang).max() < 1e-3
 
 
+@pytest.mark.slow
 def test_joint_solution_is_exact_on_exact_observations(exact):
     obs, truth = exact
     res = calibrate(obs)
@@ -72,6 +74,7 @@ def test_joint_solution_is_exact_on_exact_observations(exact):
     assert pos.max() < 1e-6 and ang.max() < 1e-8
 
 
+@pytest.mark.slow
 def test_aimed_lasers_pass_through_their_spots_centroid_from_the_camera_centre(exact):
     """On exact data at the truth every spot's point lies on its laser's line, so the aimed line
     goes through a point of the true line (its spots' centroid) along that point's direction
@@ -112,6 +115,7 @@ def test_a_laser_whose_spots_span_a_few_mm_is_not_left_along_its_boards():
         assert np.degrees(ang[i]) < 2 * las["direction_std_deg"] or np.degrees(ang[i]) < 1.0, (i, np.degrees(ang[i]))
 
 
+@pytest.mark.slow
 def test_carried_pose_is_the_truth_when_the_boards_stand_still(exact):
     # the walls of the simulated box stand still relative to each other, so a pose carried
     # from another view through a neighbouring board is the true pose itself
@@ -151,6 +155,7 @@ def test_intrinsics_are_reproducible():
     assert cv2.getNumThreads() == threads
 
 
+@pytest.mark.slow
 def test_joint_lowers_the_cost_converges_and_estimates_sigma(scene):
     obs, truth = simulate(scene, noise=0.5, seed=3)
     res = calibrate(obs)
@@ -170,6 +175,7 @@ def test_joint_lowers_the_cost_converges_and_estimates_sigma(scene):
     assert np.sqrt(np.mean(pj**2)) < np.sqrt(np.mean(ps**2))
 
 
+@pytest.mark.slow
 def test_schur_step_equals_dense_step(scene):
     obs, truth = simulate(scene, noise=0.5, seed=1)
     pk = pack(obs).arrays()
@@ -220,6 +226,7 @@ def test_predicted_decrease_is_the_linear_models():
         assert actual > 0
 
 
+@pytest.mark.slow
 def test_lm_gradient_is_the_gradient_of_its_cost(scene):
     """The LM's ``J^T W r`` against central differences of the cost it accepts steps by.
 
@@ -264,6 +271,7 @@ def test_lm_gradient_is_the_gradient_of_its_cost(scene):
         assert abs(lm - fd) > 1e-4 * abs(fd)
 
 
+@pytest.mark.slow
 def test_covariance_matches_a_small_monte_carlo(scene):
     sigma = 0.5
     obs, truth = simulate(scene, noise=sigma, seed=0)
@@ -294,6 +302,7 @@ def test_covariance_matches_a_small_monte_carlo(scene):
     assert np.all((ratio > 0.6) & (ratio < 1.45)), ratio
 
 
+@pytest.mark.slow
 def test_bound_shrinks_with_noise(exact, scene):
     obs, truth = exact
     b1 = cramer_rao(truth, obs, 0.5)
@@ -302,6 +311,7 @@ def test_bound_shrinks_with_noise(exact, scene):
     assert np.all(b1["position_std_mm"] > 0) and np.all(np.isfinite(b1["direction_std_rad"]))
 
 
+@pytest.mark.slow
 def test_known_camera_can_be_frozen(scene):
     obs, truth = simulate(scene, noise=0.3, seed=5)
     res = calibrate(obs, camera=truth.rig.camera, freeze={"camera"})
@@ -309,6 +319,7 @@ def test_known_camera_can_be_frozen(scene):
     assert np.all(np.asarray(res.cov.glob)[:9, :9] == 0.0)
 
 
+@pytest.mark.slow
 def test_outliers_are_flagged_and_do_not_spoil_the_fit(scene):
     # a dot has 8 redundant neighbours on its board (a spot in this 5-view scene has too little
     # redundancy to be told from its laser's line)
@@ -427,6 +438,7 @@ def test_cli_calibrate_truncated_file(tmp_path, scene, capsys):
     assert not (tmp_path / "c.json").exists()
 
 
+@pytest.mark.slow
 def test_camera_command_on_opencv_left_images(tmp_path, capsys):
     images = sorted(glob.glob("tests/data/opencv_left/left*.jpg"))
     assert len(images) == 13
@@ -444,6 +456,7 @@ def test_camera_command_on_opencv_left_images(tmp_path, capsys):
     assert "rms" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_camera_command_lists_images_without_a_board(tmp_path, capsys):
     images = sorted(glob.glob("tests/data/opencv_left/left*.jpg"))[:4]
     blank = tmp_path / "blank.png"

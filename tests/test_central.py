@@ -25,6 +25,7 @@ def _through_mirror_only(rig, n_views=8, noise=0.3, seed=4):
     return obs, truth
 
 
+@pytest.mark.slow
 def test_the_central_start_finds_a_central_rig():
     """A camera at the far focus of a hyperboloid (no distortion, principal point at the image
     centre): the search recovers the eccentricity and the focal length it was rendered with."""
@@ -44,6 +45,7 @@ def test_the_central_start_finds_a_central_rig():
 
 
 @pytest.mark.parametrize("shape", ["given", "estimated"])
+@pytest.mark.slow
 def test_a_rig_seen_through_its_mirror_only_calibrates(shape):
     """A hyperboloid off its focus (non-central) and the preset's distorted camera, from the
     walls seen through the mirror alone (8 views): camera and mirror (its conic constant too,
@@ -83,6 +85,7 @@ def test_a_rig_seen_through_its_mirror_only_calibrates(shape):
     assert invalid == 0 and 0.3 < rms < 0.45, rms
 
 
+@pytest.mark.slow
 def test_the_linear_loss_leaves_no_outlier_out():
     """One dot moved 8 px: the robust fit leaves it out and says so, the plain least-squares fit
     (``loss="linear"``) keeps every dot and its residual shows the dot."""
@@ -130,6 +133,7 @@ def test_a_covariance_without_the_shape_column_is_read(tmp_path):
     np.testing.assert_array_equal(cov, expected)
 
 
+@pytest.mark.slow
 def test_a_shape_without_dimensions_from_the_cli(tmp_path, capsys):
     """``"mirror_shape": {"kind": "hyperboloid"}``: no dimensions given, views through the
     mirror only.  The calibration writes a hyperboloid whose conic constant it estimated, with
@@ -162,6 +166,7 @@ def test_a_shape_without_dimensions_from_the_cli(tmp_path, capsys):
         calibrate(dataclasses.replace(direct, mirror_shape={"kind": "hyperboloid"}))
 
 
+@pytest.mark.slow
 def test_a_sphere_seen_through_itself_only_holds_its_axis():
     """A sphere's vertex slides over it with its axis (only its centre is seen): seen through the
     mirror only, the axis is held (std 0), the fit is at the noise and 4 views it never saw are
@@ -181,6 +186,7 @@ def test_a_sphere_seen_through_itself_only_holds_its_axis():
     assert invalid == 0 and 0.3 < rms < 0.45, rms
 
 
+@pytest.mark.slow
 def test_auto_needs_views_through_the_mirror_alone():
     """``mirror_shape.kind = "auto"`` with direct views, or with one view: a clear error."""
     from slcvjax.calibration.calibrate import calibrate
@@ -233,6 +239,7 @@ def test_auto_picks_a_hyperboloid_by_held_out_views():
     assert abs(float(res.rig.mirror.conic) + 2.5) < 4 * std
 
 
+@pytest.mark.slow
 def test_an_estimate_that_closes_the_conic_writes_a_readable_file(tmp_path):
     """An ellipsoid (conic constant -0.6) calibrated as a hyperboloid of unknown shape: the estimate
     crosses to an ellipsoid within 4 std, and its calibration file reads back (the rim, which

@@ -38,12 +38,14 @@ def test_demo_runs_end_to_end_from_images(tmp_path, capsys):
     assert read_observations(out_dir / "detected.json").views[0].spots
 
 
+@pytest.mark.slow
 def test_console_script_reports_usage_errors():
     r = subprocess.run([sys.executable, "-m", "slcvjax.cli", "nonsense"], capture_output=True, text=True)
     assert r.returncode == 2
     assert "invalid choice" in r.stderr
 
 
+@pytest.mark.slow
 def test_calibrate_from_a_calibration_evaluates_it_on_held_out_views(tmp_path, capsys):
     """Fit on some views, then ``--from CAL --freeze camera,mirror`` on other views: camera and
     mirror are held as given, and the held-out residuals expose a wrong mirror."""

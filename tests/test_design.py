@@ -51,6 +51,7 @@ def test_gradient_of_the_bound_matches_finite_differences(plan):
     assert float(jnp.max(jnp.abs(g))) > 1e-3
 
 
+@pytest.mark.slow
 def test_optimised_poses_stay_in_range_and_lower_the_bound(plan):
     _, p = plan
     res = _design.optimise(p, steps=6)

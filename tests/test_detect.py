@@ -68,6 +68,7 @@ def _mislabelled(obs, exact) -> tuple[int, list]:
     return boards, wrong
 
 
+@pytest.mark.slow
 def test_dots_are_accurate_and_placed_on_their_grid(rendered):
     _, _, exact, _, obs, _ = rendered
     boards, wrong = _mislabelled(obs, exact)
@@ -132,6 +133,7 @@ def _spot_hidden(scene, truth, view, laser, pixel, rim_curve) -> bool:
     return bool(np.min(np.linalg.norm(scene.boards[spot[0]][:, :2] - xy, axis=1)) < NOISE_FREE.dot_radius_mm + 1.0)
 
 
+@pytest.mark.slow
 def test_spots_are_accurate_labelled_and_almost_all_found(rendered):
     scene, _, exact, truth_cal, obs, _ = rendered
     uv, ok = project_rim(truth_cal.rig, jnp.linspace(0, 2 * np.pi, 20000, endpoint=False))
@@ -158,6 +160,7 @@ def test_spots_are_accurate_labelled_and_almost_all_found(rendered):
     assert wrong_board == 0
 
 
+@pytest.mark.slow
 def test_rim_pixels_lie_on_the_true_rim(rendered):
     _, _, _, truth, obs, _ = rendered
     uv, ok = project_rim(truth.rig, jnp.linspace(0, 2 * np.pi, 20000, endpoint=False))
@@ -170,6 +173,7 @@ def test_rim_pixels_lie_on_the_true_rim(rendered):
     assert np.sqrt(np.mean(np.square(d))) < 0.3
 
 
+@pytest.mark.slow
 def test_chessboard_corners_match_the_truth(rendered):
     _, _, exact, _, obs, _ = rendered
     assert len(obs.calibration_views) == len(exact.calibration_views)
@@ -212,6 +216,7 @@ def _copy(rendered, tmp_path):
     return dst
 
 
+@pytest.mark.slow
 def test_black_image_is_named(rendered, tmp_path, capsys):
     folder = _copy(rendered, tmp_path)
     cv2.imwrite(str(folder / "view03.png"), np.zeros((480, 640, 3), np.uint8))
@@ -221,6 +226,7 @@ def test_black_image_is_named(rendered, tmp_path, capsys):
     assert not (tmp_path / "o.json").exists()
 
 
+@pytest.mark.slow
 def test_truncated_image_is_named(rendered, tmp_path):
     folder = _copy(rendered, tmp_path)
     data = (folder / "view01.png").read_bytes()
@@ -229,6 +235,7 @@ def test_truncated_image_is_named(rendered, tmp_path):
         detect_folder(folder)
 
 
+@pytest.mark.slow
 def test_wrong_size_image_is_named(rendered, tmp_path):
     folder = _copy(rendered, tmp_path)
     cv2.imwrite(str(folder / "chess02.png"), np.full((240, 320, 3), 128, np.uint8))
@@ -236,6 +243,7 @@ def test_wrong_size_image_is_named(rendered, tmp_path):
         detect_folder(folder)
 
 
+@pytest.mark.slow
 def test_image_missing_from_the_folder_is_named(rendered, tmp_path):
     folder = _copy(rendered, tmp_path)
     (folder / "view05.png").unlink()
@@ -243,6 +251,7 @@ def test_image_missing_from_the_folder_is_named(rendered, tmp_path):
         detect_folder(folder)
 
 
+@pytest.mark.slow
 def test_bad_setup_is_named(rendered, tmp_path):
     folder = _copy(rendered, tmp_path)
     doc = json.loads((folder / "setup.json").read_text())
@@ -259,6 +268,7 @@ def test_bad_setup_is_named(rendered, tmp_path):
         (("spot_sigma_mm",), "x", "spot_sigma_mm"),
     ],
 )
+@pytest.mark.slow
 def test_bad_target_sizes_are_named(rendered, tmp_path, where, value, match):
     folder = _copy(rendered, tmp_path)
     doc = json.loads((folder / "setup.json").read_text())
@@ -271,6 +281,7 @@ def test_bad_target_sizes_are_named(rendered, tmp_path, where, value, match):
         read_setup(folder / "setup.json")
 
 
+@pytest.mark.slow
 def test_the_rendered_sizes_reach_the_observations(rendered):
     scene, folder, _, _, obs, _ = rendered
     setup = read_setup(folder / "setup.json")
@@ -281,6 +292,7 @@ def test_the_rendered_sizes_reach_the_observations(rendered):
     assert radii == {f"wall{j}": NOISE_FREE.dot_radius_mm for j in range(4)} and sigma == NOISE_FREE.spot_sigma_mm
 
 
+@pytest.mark.slow
 def test_centroid_correction_at_the_truth_removes_the_predictable_part(rendered):
     """The dots' detected centroids against their true projections, before and after the
     predicted offset of each dot's image is subtracted (at the true rig and board poses)."""
@@ -304,6 +316,7 @@ def test_centroid_correction_at_the_truth_removes_the_predictable_part(rendered)
     assert 0.8 < slope < 1.3  # measured 1.07 and 1.11 per axis
 
 
+@pytest.mark.slow
 def test_disk_offset_matches_a_dense_sum_over_the_disk():
     """The quadrature against a dense grid over the disk, each cell weighted by its image's area."""
     scene = make_scene("paper")
@@ -330,6 +343,7 @@ def test_disk_offset_matches_a_dense_sum_over_the_disk():
     np.testing.assert_allclose(off, dense, atol=3e-3 * np.linalg.norm(off))
 
 
+@pytest.mark.slow
 def test_targets_left_out_are_placed_by_the_box_and_only_right(rendered):
     """At the true rig and board poses, every target the detector left out with candidates is
     placed by the other walls of its view, on its true grid points, or stays out."""

@@ -37,6 +37,7 @@ def _fd_hessian(fun, x, eps):
     return jnp.stack(cols, -1)
 
 
+@pytest.mark.slow
 def test_second_derivatives_of_the_reflection_point_are_exact():
     mir = make_scene("paper").rig.mirror
     p = jnp.array([150.0, 40.0, 56.0])

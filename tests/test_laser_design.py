@@ -35,6 +35,7 @@ def _diameters(rig, meas_rig, d, noise, rig_cov, trials, seed):
     return np.asarray(out)
 
 
+@pytest.mark.slow
 def test_predicted_diameter_std_matches_monte_carlo_pixel_noise_and_calibration_error():
     """The first-order prediction against measurements of simulated spots: pixel noise with the
     exact rig, then pixel noise with rigs drawn from a calibration covariance."""

@@ -43,6 +43,7 @@ def test_parallel_and_backward_beams_are_invalid_without_nan():
         assert np.all(np.isfinite(np.asarray(g)))
 
 
+@pytest.mark.slow
 def test_retract_is_4_dof_per_line_and_keeps_unit_directions():
     lasers = sj.Lasers.create([[30.0, 0, 40], [0, 30.0, 40]], [[0.9, 0, -0.45], [0, 0.9, -0.45]])
 

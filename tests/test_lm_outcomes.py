@@ -22,6 +22,7 @@ from slcvjax.observations.simulate import box_scene, paper_rig, paper_views, sim
 
 
 @pytest.mark.parametrize("c", [0.5, 2.0])
+@pytest.mark.slow
 def test_losses_match_their_closed_forms(c):
     r = np.linspace(0.0, 6.0 * c, 61)
     sq = jnp.asarray(r**2)
@@ -53,6 +54,7 @@ def problem():
     return params, layout.pad_packed(pk), pad_masks(layout, make_masks(params)), layout
 
 
+@pytest.mark.slow
 def test_converged_at_the_truth(problem):
     params, arr, masks, layout = problem
     res = _solve(pad_params(layout, params), arr, masks, "linear", 1.0, 50)

@@ -79,6 +79,7 @@ def test_reflected_elevation_closed_form(beta_deg):
 
 
 @given(st.integers(0, 2**31 - 1), st.sampled_from(["mid", "apex", "rim", "near", "far"]))
+@pytest.mark.slow
 def test_pixel_ray_point_pixel_roundtrip(seed, case):
     rng = np.random.default_rng(seed)
     cam, mirror = random_camera(rng), random_mirror(rng)
@@ -100,6 +101,7 @@ def test_pixel_ray_point_pixel_roundtrip(seed, case):
 
 
 @given(st.integers(0, 2**31 - 1))
+@pytest.mark.slow
 def test_law_of_reflection_at_the_solved_point(seed):
     rng = np.random.default_rng(seed)
     cam, mirror = random_camera(rng), random_mirror(rng)
@@ -152,6 +154,7 @@ def _setup_for_gradients():
 
 
 @pytest.mark.parametrize("wrt", ["point", "mirror", "camera"])
+@pytest.mark.slow
 def test_projection_jacobians_fwd_rev_fd(wrt):
     cam, mirror, p = _setup_for_gradients()
     if wrt == "point":
@@ -168,6 +171,7 @@ def test_projection_jacobians_fwd_rev_fd(wrt):
     np.testing.assert_allclose(jf, fd, rtol=2e-6, atol=2e-5)
 
 
+@pytest.mark.slow
 def test_implicit_derivative_equals_unrolled_derivative():
     cam, mirror, p = _setup_for_gradients()
 
@@ -191,6 +195,7 @@ def test_implicit_derivative_equals_unrolled_derivative():
         [0.6, -0.4, 48.0],  # at the apex
     ],
 )
+@pytest.mark.slow
 def test_invisible_points_are_masked_with_finite_values_and_gradients(p):
     mirror = sj.ConeMirror.create([0.6, -0.4, 48.0], [0.02, -0.015, 1.0], 20.0, 10.0)
     cam = sj.Camera.create(551.757, 551.95, 322.826, 205.202, [-0.28, 0.09, 0.0012, -0.0008, -0.01], 640, 480)
@@ -234,6 +239,7 @@ def test_mirror_retract_keeps_a_unit_axis_and_moves_5_dof():
     assert float(jnp.linalg.norm(m2.axis)) == pytest.approx(1.0, abs=1e-15)
 
 
+@pytest.mark.slow
 def test_apex_margin_continues_the_projection_smoothly_through_the_apex():
     from slcvjax.observations.simulate import paper_rig
 

@@ -5,6 +5,7 @@ residual check that flags a system without a root."""
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from slcvjax.geometry.newton import newton_implicit, newton_residual_norm
 
@@ -40,6 +41,7 @@ def test_root_and_its_first_derivative():
     assert float(newton_residual_norm(f, root(THETA), THETA)) < 1e-12
 
 
+@pytest.mark.slow
 def test_second_derivatives_are_exact_in_every_mode():
     ref = jax.hessian(closed_form)(THETA)
     for hess in (jax.hessian, lambda f: jax.jacfwd(jax.jacfwd(f)), lambda f: jax.jacrev(jax.jacrev(f))):

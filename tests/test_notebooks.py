@@ -19,15 +19,9 @@ def test_the_five_notebooks_are_there_without_outputs():
                 assert not cell.outputs and cell.execution_count is None, f"{p.name}: outputs are not stripped"
 
 
-# the two longest (a joint refinement with its sensitivity, an experiment design) in the slow tier
-SLOW = {"04_joint_refinement", "05_experiment_design"}
-
-
-@pytest.mark.parametrize(
-    "path",
-    [pytest.param(p, marks=pytest.mark.slow) if p.stem in SLOW else p for p in NOTEBOOKS],
-    ids=lambda p: p.stem,
-)
+# each runs in a fresh kernel that compiles its own calibration: the slow tier
+@pytest.mark.slow
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
 def test_notebook_runs(path, tmp_path, monkeypatch):
     # the kernels inherit the tests' persistent compilation cache (conftest): the calibration
     # of the same small scene compiles once

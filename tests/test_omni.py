@@ -100,6 +100,7 @@ def images(tmp_path_factory):
     return paths, poses
 
 
+@pytest.mark.slow
 def test_corners_detected_through_the_mirror_lie_on_the_truth(images):
     """Every board found; its corners in the grid's order (one of the two orders a symmetric
     reading allows), within 0.15 px RMS and 0.4 px at worst of the true projections (the mirror
@@ -119,6 +120,7 @@ def test_corners_detected_through_the_mirror_lie_on_the_truth(images):
         assert np.sqrt(np.mean(err**2)) < 0.15 and err.max() < 0.4, (v.name, err)
 
 
+@pytest.mark.slow
 def test_omni_calibrates_from_the_images(images, tmp_path):
     """``slcvjax omni`` on 8 of the images (the vertex radius given, the conic constant not): the
     residual at the corners' error, the camera, the mirror's vertex and conic constant within 4
@@ -151,6 +153,7 @@ def test_omni_calibrates_from_the_images(images, tmp_path):
     assert invalid == 0 and rms < 0.3, rms
 
 
+@pytest.mark.slow
 def test_omni_says_what_is_wrong(tmp_path, images, capsys):
     """A bad --board, an unreadable file, images of different sizes, no board anywhere: one line each."""
     import cv2

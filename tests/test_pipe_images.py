@@ -40,6 +40,7 @@ def _errors(exact, obs):
     return np.array(err), wrong
 
 
+@pytest.mark.slow
 def test_spots_are_labelled_by_the_lines_and_corrected_for_the_mirror(rendered):
     rig, _, folder, names, exact, _ = rendered
     assert names == [f"pipe{i:02d}.png" for i in range(POSES)]
@@ -61,6 +62,7 @@ def test_spots_are_labelled_by_the_lines_and_corrected_for_the_mirror(rendered):
     assert fixed.extra["spot_centroids"]["spot_sigma_mm"] == NOISE_FREE.spot_sigma_mm
 
 
+@pytest.mark.slow
 def test_measure_command_measures_the_pipe_from_images(rendered, tmp_path, capsys):
     rig, _, folder, _, _, _ = rendered
     cal = tmp_path / "cal.json"
@@ -75,6 +77,7 @@ def test_measure_command_measures_the_pipe_from_images(rendered, tmp_path, capsy
         assert abs(v["circle"]["diameter"] - DIAMETER) < 0.5
 
 
+@pytest.mark.slow
 def test_a_folder_without_images_is_refused(rendered, tmp_path, capsys):
     rig = rendered[0]
     cal = tmp_path / "cal.json"
@@ -84,6 +87,7 @@ def test_a_folder_without_images_is_refused(rendered, tmp_path, capsys):
     assert "no images" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_an_image_of_another_size_is_refused_naming_it(rendered, tmp_path, capsys):
     import cv2
 
@@ -97,6 +101,7 @@ def test_an_image_of_another_size_is_refused_naming_it(rendered, tmp_path, capsy
     assert "small.png" in err and "60x40" in err and "calibration's camera" in err
 
 
+@pytest.mark.slow
 def test_simulate_places_the_sensor_in_a_pipe(tmp_path):
     argv = ["simulate", "--pipe", "140", "--views", "3", "--lasers", "6", "--render", "--image-noise", "0"]
     assert cli.main(argv + ["--out", str(tmp_path)]) == 0

@@ -22,6 +22,7 @@ def test_so3_exp_matches_rodrigues_and_log_inverts(seed, scale):
     np.testing.assert_allclose(np.asarray(sj.so3_log(jnp.asarray(r))), w, atol=1e-9 * max(1.0, scale))
 
 
+@pytest.mark.slow
 def test_so3_exp_jacobian_at_zero_is_hat():
     j = np.asarray(jax.jacfwd(sj.so3_exp)(jnp.zeros(3)))
     for i in range(3):

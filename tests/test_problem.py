@@ -25,6 +25,7 @@ def packed_truth():
     return obs, truth, packed, poses
 
 
+@pytest.mark.slow
 def test_pack_counts_every_observation(packed_truth):
     obs, _, packed, poses = packed_truth
     n_dots = sum(int(s.sum()) for v in obs.views for _, s in v.boards.values())
@@ -34,6 +35,7 @@ def test_pack_counts_every_observation(packed_truth):
     assert set(np.asarray(packed.spot_laser).tolist()) == set(range(6))
 
 
+@pytest.mark.slow
 def test_residuals_vanish_at_the_truth_and_grow_away_from_it(packed_truth):
     _, truth, packed, poses = packed_truth
     f = jax.jit(dot_residuals)
@@ -56,6 +58,7 @@ def test_bucket_ladder():
         bucket(-1)
 
 
+@pytest.mark.slow
 def test_datasets_of_different_sizes_share_one_layout():
     """Two scenes with different numbers of views, lasers and so of every observation: one set
     of padded sizes (the joint problem's coarse ladder), and a fine one on request."""
@@ -87,6 +90,7 @@ def _rel(a, b):
     return float(np.max(np.abs(a - b)) / max(np.max(np.abs(b)), 1e-300))
 
 
+@pytest.mark.slow
 def test_padded_problem_solves_as_the_unpadded_one():
     """Padding in every array (dots, spots, rim, corners, board and direct-view poses) is
     masked out exactly: the same steps, cost, parameters, covariance and residual table."""

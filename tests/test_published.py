@@ -66,6 +66,7 @@ def test_vmrimage_fits_below_ocamcalibs_published_rms():
 MEI_KEPT = (0, 1, 3, 4, 6, 7, 8, 9)  # the views OpenCV omnidir kept (SOURCE.md)
 
 
+@pytest.mark.slow
 def test_mei_corners_detected_in_its_images():
     """``slcvjax omni``'s detector finds the 6x8 board in all 10 of Mei's images; in the seven
     views where the set's own corner file agrees with its images, the two lie within 0.05 px

@@ -77,6 +77,7 @@ def _chain(model, rigid: Params, pk) -> np.ndarray:
     return np.asarray(jax.jacfwd(free_of)(jnp.zeros(n_r)))
 
 
+@pytest.mark.slow
 def test_rigid_normal_equations_are_the_free_ones_by_the_chain_rule(small):
     obs, truth, pk, free, model, rigid = small
     lay_f, lin_f = _linearisation(free, pk, make_masks(free), "linear", 1.0)
@@ -103,6 +104,7 @@ def test_rigid_normal_equations_are_the_free_ones_by_the_chain_rule(small):
         np.testing.assert_allclose(pose_cov[k], ref, rtol=1e-6, atol=1e-9 * np.abs(ref).max())
 
 
+@pytest.mark.slow
 def test_rigid_bound_is_tighter_for_every_laser(small):
     obs, truth, *_ = small
     free = cramer_rao(truth, obs, 0.5)
@@ -115,6 +117,7 @@ def test_rigid_bound_is_tighter_for_every_laser(small):
     assert np.all(d_glob <= 1e-12 * np.diag(free["cov"].glob).max())
 
 
+@pytest.mark.slow
 def test_rigid_calibration_recovers_the_box(small):
     obs, truth, *_ = small
     res = calibrate(obs, rigid=True)
@@ -146,6 +149,7 @@ def test_rigid_needs_a_declared_group(small):
         calibrate(obs, rigid=["wall0", "wallX"])
 
 
+@pytest.mark.slow
 def test_a_row_shifted_grid_does_not_fit_the_box(tmp_path, capsys):
     """One wall of one view labelled a row off (every dot as the dot one row above): with free
     poses it vanishes into its pose; the rigid box finds it and leaves it out."""

@@ -57,6 +57,7 @@ def test_packed_rows_name_their_observations(noisy):
     np.testing.assert_array_equal(sel.spot_pixels, np.asarray(pk.spot_pixels)[keep])
 
 
+@pytest.mark.slow
 def test_wrong_spot_labels_are_repaired_and_listed(noisy, clean_result):
     obs, truth = noisy
     bad = copy.deepcopy(obs)
@@ -81,10 +82,12 @@ def test_wrong_spot_labels_are_repaired_and_listed(noisy, clean_result):
     json.dumps(doc)  # plain JSON
 
 
+@pytest.mark.slow
 def test_clean_observations_are_not_repaired(clean_result):
     assert clean_result.repairs == []
 
 
+@pytest.mark.slow
 def test_gross_spot_and_dot_outliers_are_left_out(noisy, clean_result):
     obs, truth = noisy
     bad = copy.deepcopy(obs)
@@ -110,6 +113,7 @@ def test_gross_spot_and_dot_outliers_are_left_out(noisy, clean_result):
     assert np.sqrt(np.mean(ang**2)) < 1.3 * np.sqrt(np.mean(ang0**2)) + 2e-4
 
 
+@pytest.mark.slow
 def test_lasers_by_consensus_survive_wrong_labels(noisy):
     # on the true geometry (the calibration refits the lines after refining it), so that
     # only the consensus is tested
@@ -149,6 +153,7 @@ def test_a_laser_whose_spots_all_belong_to_another_is_refused(noisy):
         calibrate(obs)
 
 
+@pytest.mark.slow
 def test_negative_variances_are_undetermined_not_zero(clean_result, noisy):
     np.testing.assert_array_equal(std_of_variance([4.0, 0.0, -1e-14]), [2.0, 0.0, 0.0])
     assert np.isnan(std_of_variance([4.0, -0.5])[1])
@@ -165,6 +170,7 @@ def test_negative_variances_are_undetermined_not_zero(clean_result, noisy):
     json.dumps(doc)
 
 
+@pytest.mark.slow
 def test_a_dot_labelled_as_an_unseen_grid_position_is_given_its_own(noisy):
     obs, _ = noisy
     bad = copy.deepcopy(obs)

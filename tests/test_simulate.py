@@ -26,6 +26,7 @@ def _ray_distance(m, d, x):
     return np.linalg.norm(v - np.sum(v * d, axis=-1, keepdims=True) * d, axis=-1)
 
 
+@pytest.mark.slow
 def test_preset_matches_the_paper(exact):
     scene, obs, truth = exact
     cam = truth.rig.camera

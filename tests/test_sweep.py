@@ -18,6 +18,7 @@ def sweep():
     return run_sweep("paper", noise=(0.0, 0.5), trials=2, seed=3, n_lasers=4, n_views=5)
 
 
+@pytest.mark.slow
 def test_sweep_document(sweep):
     assert sweep["format"] == "slcv-sweep/1"
     assert sweep["noise"] == [0.0, 0.5] and sweep["trials"] == 2
@@ -29,6 +30,7 @@ def test_sweep_document(sweep):
     assert sweep["converged"] == 4
 
 
+@pytest.mark.slow
 def test_sweep_is_exact_at_zero_noise_and_near_the_bound_at_half_a_pixel(sweep):
     joint, bound = sweep["methods"]["joint"], sweep["methods"]["bound"]
     assert joint["position_rms_mm"][0] < 1e-6 and joint["direction_rms_deg"][0] < 1e-6
@@ -41,6 +43,7 @@ def test_sweep_is_exact_at_zero_noise_and_near_the_bound_at_half_a_pixel(sweep):
     assert sweep["methods"]["staged"]["position_rms_mm"][1] > 2.0 * joint["position_rms_mm"][1]
 
 
+@pytest.mark.slow
 def test_component_std_agrees_with_the_position_and_direction_std():
     obs, truth = simulate(make_scene("paper"))
     b = cramer_rao(truth, obs, 0.5)
@@ -51,6 +54,7 @@ def test_component_std_agrees_with_the_position_and_direction_std():
     np.testing.assert_allclose(np.linalg.norm(comp[:, 3:], axis=1), ang, rtol=1e-9)
 
 
+@pytest.mark.slow
 def test_sweep_files(sweep, tmp_path):
     paths = write_sweep(sweep, tmp_path)
     assert [p.name for p in paths] == ["sweep.json", "sweep.csv", "sweep.png"]

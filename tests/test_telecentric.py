@@ -46,6 +46,7 @@ def test_a_telecentric_pixel_sees_a_line_along_z():
     np.testing.assert_allclose(d, [0.0, 0.0, 1.0])
 
 
+@pytest.mark.slow
 def test_a_telecentric_camera_on_a_paraboloids_axis_is_central():
     """Parallel rays along a paraboloid's axis reflect off its convex side as if from its focus
     (the vertex plus half the vertex radius along the axis): every back-projected ray's line
@@ -73,6 +74,7 @@ def test_a_telecentric_camera_on_a_paraboloids_axis_is_central():
     ],
     ids=["cone", "hyperboloid", "sphere"],
 )
+@pytest.mark.slow
 def test_telecentric_projection_inverts_back_projection(mirror):
     """Points along the reflected rays of pixels before a telecentric camera, through a tilted
     mirror: each projects back to its pixel (1e-6 px), and the projection's derivative matches
@@ -99,6 +101,7 @@ def test_telecentric_projection_inverts_back_projection(mirror):
     np.testing.assert_allclose(jac, fd, rtol=1e-5, atol=1e-7)
 
 
+@pytest.mark.slow
 def test_a_telecentric_calibration_and_observations_round_trip(tmp_path):
     """The camera's projection and unit survive the calibration file; the observations'
     ``camera_projection`` too, and an unknown one is refused naming the field."""
@@ -144,6 +147,7 @@ def _observations(rig, n_views=8, noise=0.3, seed=4):
 
 
 @pytest.mark.parametrize("shape", ["paraboloid", "hyperboloid estimated"])
+@pytest.mark.slow
 def test_a_telecentric_rig_calibrates_through_its_mirror(shape):
     """A distorted telecentric camera before a slightly tilted, off-axis mirror (8 views of the
     walls through it).  A paraboloid: the solution converges, with the camera and the mirror's
