@@ -182,3 +182,62 @@ def test_a_row_shifted_grid_does_not_fit_the_box(tmp_path, capsys):
     # the left-out board's pose is the box's: the truth's, not the shifted one
     t = np.asarray(cal["board_poses"][view][board]["t"])
     assert np.linalg.norm(t - np.asarray(truth.board_poses[view][board].t)) < 3.0
+
+
+@pytest.mark.slow
+def test_the_box_judges_again_the_spots_the_free_solve_relabelled(small):
+    """Under free poses a board seen by a few dots is placed as much by its spots as by its dots,
+    so a spot of its own laser can be taken for another's.  Pass R judges the relabelled and
+    left-out spots again at the box's geometry: a spot whose own label fits comes back with it,
+    a label that was wrong in the input stays corrected."""
+    import dataclasses
+
+    from slcvjax.calibration.calibrate import _per_observation, _rigid_refine
+    from slcvjax.observations.formats import SpotObs
+
+    obs, truth, *_ = small
+    # a genuinely wrong label in the input: view 2's first spot given the next laser
+    v_bad = 2
+    spots = list(obs.views[v_bad].spots)
+    true_laser = spots[0].laser
+    spots[0] = SpotObs((true_laser + 1) % obs.n_lasers, spots[0].board, spots[0].pixel)
+    views = list(obs.views)
+    views[v_bad] = dataclasses.replace(views[v_bad], spots=spots)
+    wrong = dataclasses.replace(obs, views=views)
+    free = calibrate(wrong)
+    row_bad = free.packed.spot_src.index((v_bad, 0))
+    assert int(free.packed.spot_laser[row_bad]) == true_laser, "the free solve corrects the input's wrong label"
+
+    # a correct spot of another view handed to the next laser, as a weakly placed board allows
+    n_s = int(free.packed.counts[1])
+    row = next(i for i, (v, _) in enumerate(free.packed.spot_src) if v != v_bad)
+    v, j = free.packed.spot_src[row]
+    labels = np.asarray(free.packed.spot_laser)[:n_s].copy()
+    own = int(labels[row])
+    assert own == obs.views[v].spots[j].laser
+    labels[row] = (own + 1) % obs.n_lasers
+    record = {"kind": "spot", "view": obs.views[v].name, "index": j, "board": obs.views[v].spots[j].board,
+              "action": "relabelled", "laser": own, "new_laser": int(labels[row])}  # fmt: skip
+    n_d = int(free.packed.counts[0])
+    handed = dataclasses.replace(
+        free, packed=free.packed.select(np.ones(n_d, bool), np.ones(n_s, bool), labels), repairs=[*free.repairs, record]
+    )
+    res = _rigid_refine(handed, wrong, list(obs.extra["rigid_boards"]), 500)
+    restored = {(r["view"], r["index"]) for r in res.box["spots_restored"]}
+    assert (obs.views[v].name, j) in restored, (res.box["spots_restored"], free.repairs)
+    # each spot restored was changed by the free solve and had its true label in the input
+    names = [w.name for w in obs.views]
+    for name, k in restored:
+        assert (name, k) == (obs.views[v].name, j) or any(
+            r["kind"] == "spot" and (r["view"], r["index"]) == (name, k) for r in free.repairs
+        )
+        assert (names.index(name), k) != (v_bad, 0)
+    assert f"{len(restored)} spot(s) back with their own labels" in res.passes[-1].name and res.passes[-1].converged
+    assert not [r for r in res.repairs if r["kind"] == "spot" and (r["view"], r["index"]) == (obs.views[v].name, j)]
+    used_labels = np.asarray(res.packed.spot_laser)[: int(res.packed.counts[1])].tolist()
+    got = dict(zip(res.packed.spot_src, used_labels, strict=True))
+    assert got[(v, j)] == own
+    assert got[(v_bad, 0)] == true_laser  # the input's wrong label is not brought back
+    # and every spot used fits the box at the noise
+    norm, kind, ok = _per_observation(res.params, res.packed)
+    assert np.all(norm[(kind == 1) & ok] < 5 * 0.3 * 2.5)

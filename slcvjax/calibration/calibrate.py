@@ -889,12 +889,73 @@ def _calibrate_lockstep(
     return out
 
 
+def _restore_spots(params: Params, model, cur: Packed, obs: Observations, left) -> tuple[set, Packed]:
+    """The spots of ``obs`` that ``cur`` lacks or carries under another label (the free solve
+    relabelled or left them out) whose own label fits at the rigid solution ``params``: within
+    :data:`OUTLIER_SIGMAS` of the spots' noise (at least :data:`MIN_OUTLIER_PX`).
+
+    Under free board poses a board seen by a few dots (a row of four) is placed as much by its
+    spots as by its dots, and a spot of its own laser can look like another's; the box places
+    that board from its other walls, so the decision is taken again with that evidence.
+    Returns the ``(view name, spot index)`` of each spot restored and the problem with them."""
+    n_d, n_s = int(cur.counts[Kind.DOT]), int(cur.counts[Kind.SPOT])
+    if n_s and not cur.spot_src:
+        return set(), cur  # no record of which input spot each row is
+    index = {src: i for i, src in enumerate(cur.spot_src)}
+    pose_of = {key: k for k, key in enumerate(cur.pose_keys) if k not in left}
+    labels = np.asarray(cur.spot_laser)[:n_s].copy()
+    changed, added = [], []  # rows of cur whose label differs from the input's; spots not in cur
+    for v, view in enumerate(obs.views):
+        for j, s in enumerate(view.spots):
+            if s.board is None or (v, s.board) not in pose_of or not 0 <= s.laser < obs.n_lasers:
+                continue
+            i = index.get((v, j))
+            if i is None:
+                added.append((v, j, pose_of[(v, s.board)], s.laser, s.pixel))
+            elif labels[i] != s.laser:
+                changed.append((i, s.laser))
+    if not changed and not added:
+        return set(), cur
+    # every candidate under its own label: the changed rows in place, the others appended
+    own = labels.copy()
+    for i, k in changed:
+        own[i] = k
+    trial = dataclasses.replace(
+        cur.select(np.ones(n_d, bool), np.ones(n_s, bool), own),
+        spot_pose=np.concatenate([np.asarray(cur.spot_pose)[:n_s], [a[2] for a in added]]).astype(np.int64),
+        spot_laser=np.concatenate([own, [a[3] for a in added]]).astype(np.int64),
+        spot_pixels=np.concatenate([np.asarray(cur.spot_pixels)[:n_s], np.reshape([a[4] for a in added], (-1, 2))]),
+        spot_src=tuple(cur.spot_src) + tuple((a[0], a[1]) for a in added),
+        counts=np.asarray(cur.counts) + np.array([0, len(added), 0, 0]),
+    )
+    norm, kind, ok = _per_observation(params, model.packed(trial))
+    base_norm, base_kind, base_ok = _per_observation(params, model.packed(cur))
+    sig = _sigmas_of(base_norm, base_kind, base_ok)[Kind.SPOT]
+    limit = max(OUTLIER_SIGMAS * sig, MIN_OUTLIER_PX) if np.isfinite(sig) else MIN_OUTLIER_PX
+    rows = [i for i, _ in changed] + [n_s + a for a in range(len(added))]
+    fits = {r for r in rows if ok[n_d + r] and norm[n_d + r] <= limit}
+    if not fits:
+        return set(), cur
+    keep_spot = np.array([r < n_s or r in fits for r in range(n_s + len(added))])
+    final = labels.tolist() + [a[3] for a in added]
+    for i, k in changed:
+        if i in fits:
+            final[i] = k
+    trial = dataclasses.replace(trial, spot_laser=np.asarray(final, np.int64))
+    out = trial.select(np.ones(n_d, bool), keep_spot)
+    restored = {(obs.views[trial.spot_src[r][0]].name, trial.spot_src[r][1]) for r in fits}
+    return restored, out
+
+
 def _rigid_refine(res: CalibrationResult, obs: Observations, group: list[str], max_steps: int) -> CalibrationResult:
     """Pass R: the free solution ``res`` refined under the rigid box model (:mod:`slcvjax.calibration.rigid`) of
     the boards ``group``; a board pose whose dots' median residual exceeds
     :data:`slcvjax.calibration.rigid.MISFIT_SIGMAS` noise sigmas (and
     :data:`slcvjax.calibration.rigid.MISFIT_MIN_PX`) does not fit the box: its dots and spots are
-    left out (recorded in the repairs) and R runs again.
+    left out (recorded in the repairs) and R runs again.  Once no board misfits, the spots
+    the free solve relabelled or left out are judged again at R's solution
+    (:func:`_restore_spots`): those whose own label fits come back with it (their repairs
+    dropped, ``box["spots_restored"]`` naming them) and R runs again.
 
     The result's board poses are the box's (every board pose of the box, the left-out ones
     included, at ``T_cam_box @ T_box_board``), its covariance the rig's block of the rigid
@@ -909,7 +970,8 @@ def _rigid_refine(res: CalibrationResult, obs: Observations, group: list[str], m
     passes, repairs = list(res.passes), list(res.repairs)
     left: list[int] = []
     cur = pk
-    for round_ in range(MISFIT_ROUNDS + 1):
+    reexamined, restored_names, left_rounds = False, [], []
+    while True:
         pr = model.packed(cur)
         layout = Layout.of(pr)
         out = _solve(
@@ -923,6 +985,8 @@ def _rigid_refine(res: CalibrationResult, obs: Observations, group: list[str], m
         )
         params = unpad_params(layout, out.params)
         name = "R: rigid box" + (f" (after leaving out {len(left)} board pose(s))" if left else "")
+        if restored_names:
+            name += f" ({len(restored_names)} spot(s) back with their own labels)"
         passes.append(
             JointPass(
                 name,
@@ -941,8 +1005,18 @@ def _rigid_refine(res: CalibrationResult, obs: Observations, group: list[str], m
         limit = max(MISFIT_SIGMAS * _robust_sigma_of(norm, kind, ok), MISFIT_MIN_PX)
         medians = {int(k): float(np.median(dot_norm[pose_d == k])) for k in np.unique(pose_d)}
         new = [k for k, m in medians.items() if m > limit and k not in model.outside]
-        if not new or round_ == MISFIT_ROUNDS:
+        if not new and not reexamined:
+            # the spots the free solve relabelled or left out, judged again under the box
+            reexamined = True
+            restored, cur_new = _restore_spots(params, model, cur, obs, left)
+            if restored:
+                repairs = [r for r in repairs if not (r["kind"] == "spot" and (r["view"], r["index"]) in restored)]
+                restored_names += sorted(restored)
+                cur = cur_new
+                continue
+        if not new or len(left_rounds) == MISFIT_ROUNDS:
             break
+        left_rounds.append(new)
         for k in new:
             v, b = pk.pose_keys[k]
             repairs.append(
@@ -982,6 +1056,7 @@ def _rigid_refine(res: CalibrationResult, obs: Observations, group: list[str], m
         "views": len(model.views),
         "free_board_poses": len(model.outside),
         "left_out": [{"view": obs.views[pk.pose_keys[k][0]].name, "board": pk.pose_keys[k][1]} for k in left],
+        "spots_restored": [{"view": v, "index": j} for v, j in restored_names],
         "notes": list(model.notes),
     }
     timings = dict(res.timings)
@@ -1708,7 +1783,7 @@ def _box_json(box: dict) -> dict:
         for b, d in box["boards"].items()
     }
     return {"gauge": box["gauge"], "boards": boards} | {
-        k: box[k] for k in ("views", "free_board_poses", "left_out", "notes")
+        k: box[k] for k in ("views", "free_board_poses", "left_out", "spots_restored", "notes")
     }
 
 

@@ -15,6 +15,9 @@ linked to the gauge through the views, keep their free pose per view.
 A board pose that does not fit the box (a grid labelled one row off, a target that moved)
 no longer vanishes into a free pose: after the rigid solve its dots' median residual stands
 out, it is left out (dots and spots), reported in the repairs, and the solve runs again.
+The spots the free solve relabelled or left out are judged again at the box's geometry (under a
+free pose a board seen by a row of a few dots is placed by its spots as much as by its dots, so
+their labels were weakly tested there): each whose own label fits comes back with it.
 """
 
 import dataclasses
