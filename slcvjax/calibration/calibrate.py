@@ -902,7 +902,9 @@ def _restore_spots(params: Params, model, cur: Packed, obs: Observations, left) 
     if n_s and not cur.spot_src:
         return set(), cur  # no record of which input spot each row is
     index = {src: i for i, src in enumerate(cur.spot_src)}
-    pose_of = {key: k for k, key in enumerate(cur.pose_keys) if k not in left}
+    # boards placed by the box only: a pose of its own (outside the box, or with too few dots
+    # to be placed) says nothing new about a spot on it
+    pose_of = {key: k for k, key in enumerate(cur.pose_keys) if k not in left and k not in model.outside}
     labels = np.asarray(cur.spot_laser)[:n_s].copy()
     changed, added = [], []  # rows of cur whose label differs from the input's; spots not in cur
     for v, view in enumerate(obs.views):
