@@ -905,48 +905,47 @@ def _restore_spots(params: Params, model, cur: Packed, obs: Observations, left) 
     # boards placed by the box only: a pose of its own (outside the box, or with too few dots
     # to be placed) says nothing new about a spot on it
     pose_of = {key: k for k, key in enumerate(cur.pose_keys) if k not in left and k not in model.outside}
-    labels = np.asarray(cur.spot_laser)[:n_s].copy()
-    changed, added = [], []  # rows of cur whose label differs from the input's; spots not in cur
+    labels = np.asarray(cur.spot_laser)[:n_s]
+    cand = []  # (row of cur or None, view, spot index, pose, own label, pixel)
     for v, view in enumerate(obs.views):
         for j, s in enumerate(view.spots):
             if s.board is None or (v, s.board) not in pose_of or not 0 <= s.laser < obs.n_lasers:
                 continue
             i = index.get((v, j))
-            if i is None:
-                added.append((v, j, pose_of[(v, s.board)], s.laser, s.pixel))
-            elif labels[i] != s.laser:
-                changed.append((i, s.laser))
-    if not changed and not added:
+            if i is None or labels[i] != s.laser:
+                cand.append((i, v, j, pose_of[(v, s.board)], s.laser, np.asarray(s.pixel, float)))
+    if not cand:
         return set(), cur
-    # every candidate under its own label: the changed rows in place, the others appended
-    own = labels.copy()
-    for i, k in changed:
-        own[i] = k
-    trial = dataclasses.replace(
-        cur.select(np.ones(n_d, bool), np.ones(n_s, bool), own),
-        spot_pose=np.concatenate([np.asarray(cur.spot_pose)[:n_s], [a[2] for a in added]]).astype(np.int64),
-        spot_laser=np.concatenate([own, [a[3] for a in added]]).astype(np.int64),
-        spot_pixels=np.concatenate([np.asarray(cur.spot_pixels)[:n_s], np.reshape([a[4] for a in added], (-1, 2))]),
-        spot_src=tuple(cur.spot_src) + tuple((a[0], a[1]) for a in added),
-        counts=np.asarray(cur.counts) + np.array([0, len(added), 0, 0]),
-    )
-    norm, kind, ok = _per_observation(params, model.packed(trial))
-    base_norm, base_kind, base_ok = _per_observation(params, model.packed(cur))
-    sig = _sigmas_of(base_norm, base_kind, base_ok)[Kind.SPOT]
+    pr = model.packed(cur)
+    sig = _sigmas_of(*_per_observation(params, pr))[Kind.SPOT]
     limit = max(OUTLIER_SIGMAS * sig, MIN_OUTLIER_PX) if np.isfinite(sig) else MIN_OUTLIER_PX
-    rows = [i for i, _ in changed] + [n_s + a for a in range(len(added))]
-    fits = {r for r in rows if ok[n_d + r] and norm[n_d + r] <= limit}
+    norm, ok = _probe_at(
+        params,
+        pr,
+        Kind.SPOT,
+        spot_pose=np.asarray([c[3] for c in cand], np.int64),
+        spot_laser=np.asarray([c[4] for c in cand], np.int64),
+        spot_pixels=np.stack([c[5] for c in cand]),
+    )
+    fits = [c for c, good in zip(cand, ok & (norm <= limit), strict=True) if good]
     if not fits:
         return set(), cur
-    keep_spot = np.array([r < n_s or r in fits for r in range(n_s + len(added))])
-    final = labels.tolist() + [a[3] for a in added]
-    for i, k in changed:
-        if i in fits:
-            final[i] = k
-    trial = dataclasses.replace(trial, spot_laser=np.asarray(final, np.int64))
-    out = trial.select(np.ones(n_d, bool), keep_spot)
-    restored = {(obs.views[trial.spot_src[r][0]].name, trial.spot_src[r][1]) for r in fits}
-    return restored, out
+    own = labels.copy()
+    for c in fits:
+        if c[0] is not None:
+            own[c[0]] = c[4]
+    out = cur.select(np.ones(n_d, bool), np.ones(n_s, bool), own)
+    back = [c for c in fits if c[0] is None]  # spots the free solve left out: appended
+    if back:
+        out = dataclasses.replace(
+            out,
+            spot_pose=np.concatenate([out.spot_pose, [c[3] for c in back]]).astype(np.int64),
+            spot_laser=np.concatenate([out.spot_laser, [c[4] for c in back]]).astype(np.int64),
+            spot_pixels=np.concatenate([out.spot_pixels, np.stack([c[5] for c in back])]),
+            spot_src=tuple(out.spot_src) + tuple((c[1], c[2]) for c in back),
+            counts=np.asarray(out.counts) + np.array([0, len(back), 0, 0]),
+        )
+    return {(obs.views[c[1]].name, c[2]) for c in fits}, out
 
 
 def _rigid_refine(res: CalibrationResult, obs: Observations, group: list[str], max_steps: int) -> CalibrationResult:
@@ -1331,13 +1330,18 @@ def _readmit(tr: "_Trial", full: Packed, aside: np.ndarray, out: np.ndarray) -> 
 
 
 def _probe(tr: "_Trial", kind: Kind, **rows) -> tuple[np.ndarray, np.ndarray]:
-    """Residual norms (px) and validity, at the trial's solution, of candidate rows of one kind
-    (dots or spots; ``rows``: that kind's arrays, of one length) put in place of the
-    trial's own rows of that kind: how candidate labels are tried."""
-    c = np.asarray(tr.pk.counts).copy()
+    """:func:`_probe_at` the trial's solution and problem."""
+    return _probe_at(tr.params, tr.pk, kind, **rows)
+
+
+def _probe_at(params: Params, pk: Packed, kind: Kind, **rows) -> tuple[np.ndarray, np.ndarray]:
+    """Residual norms (px) and validity, at ``params``, of candidate rows of one kind (dots or
+    spots; ``rows``: that kind's arrays, of one length) put in place of ``pk``'s own rows of that
+    kind: how candidate labels are tried."""
+    c = np.asarray(pk.counts).copy()
     c[kind] = len(next(iter(rows.values())))
-    probe = dataclasses.replace(tr.pk, counts=c, **{("dot_src", "spot_src")[kind]: ()}, **rows)
-    norm, _, ok = _per_observation(tr.params, probe)
+    probe = dataclasses.replace(pk, counts=c, **{("dot_src", "spot_src")[kind]: ()}, **rows)
+    norm, _, ok = _per_observation(params, probe)
     first = int(c[Kind.DOT]) if kind == Kind.SPOT else 0
     return norm[first : first + int(c[kind])], ok[first : first + int(c[kind])]
 
