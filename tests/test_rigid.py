@@ -195,7 +195,7 @@ def test_the_box_judges_again_the_spots_the_free_solve_relabelled(small):
     from slcvjax.calibration.calibrate import _per_observation, _rigid_refine
     from slcvjax.observations.formats import SpotObs
 
-    obs, truth, *_ = small
+    obs, *_ = small
     # a genuinely wrong label in the input: view 2's first spot given the next laser
     v_bad = 2
     spots = list(obs.views[v_bad].spots)

@@ -971,7 +971,7 @@ def _rigid_refine(res: CalibrationResult, obs: Observations, group: list[str], m
     passes, repairs = list(res.passes), list(res.repairs)
     left: list[int] = []
     cur = pk
-    reexamined, restored_names, left_rounds = False, [], []
+    reexamined, restored_names, misfit_rounds = False, [], 0
     while True:
         pr = model.packed(cur)
         layout = Layout.of(pr)
@@ -1015,9 +1015,9 @@ def _rigid_refine(res: CalibrationResult, obs: Observations, group: list[str], m
                 restored_names += sorted(restored)
                 cur = cur_new
                 continue
-        if not new or len(left_rounds) == MISFIT_ROUNDS:
+        if not new or misfit_rounds == MISFIT_ROUNDS:
             break
-        left_rounds.append(new)
+        misfit_rounds += 1
         for k in new:
             v, b = pk.pose_keys[k]
             repairs.append(
