@@ -1,16 +1,20 @@
 """The renderer: ray-traced images of a simulated scene, through the mirror and directly.
 
-Every pixel is split into ``supersample x supersample`` samples.  A catadioptric
-sample is undistorted, its ray meets the cone (:func:`back_project`, closed form),
-and the reflected ray is followed to the first wall of the box: the wall is
-white paper with black dots (the board points), a laser spot adds red light with
-a Gaussian profile around the point where its beam meets the wall, and a ray that
-comes back to the sensor's own body (a dark cylinder from the camera to just
-below the apex) is dark: the camera's reflection at the image centre.  A sample
-that misses the mirror sees the dim background, which draws the rim's edge.  A
-direct sample meets the chessboard's plane: black and white squares with a white
-margin.  Samples are averaged (anti-aliasing), then optical blur, exposure,
-Gaussian sensor noise and 8-bit quantisation are applied.
+Every pixel is split into ``supersample x supersample`` cells, each traced at its
+centre.  A catadioptric sample is undistorted, its ray meets the cone
+(:func:`back_project`, closed form), and the reflected ray is followed to the first wall of
+the box: the wall is white paper with black dots (the board points), a laser spot adds red
+light with a Gaussian profile around the point where its beam meets the wall, and a ray that
+comes back to the sensor's own body (a dark cylinder from the camera to just below the apex)
+is dark: the camera's reflection at the image centre.  A sample that misses the mirror sees
+the dim background, which draws the rim's edge.  A direct sample meets the chessboard's
+plane: black and white squares with a white margin.  A cell that an edge crosses is traced
+again at ``ceil(refine / supersample)`` squared samples, so that it holds its area's mean
+radiance.  The optical blur acts on the cells (the lens blurs the light before a pixel
+gathers it), then each pixel is the mean of its cells, and exposure, Gaussian sensor noise
+and 8-bit quantisation are applied.  So a dot's image narrower than a pixel keeps its
+sub-pixel place, and the centroids measured in noise-free images can be checked against
+the exact projections to a hundredth of a pixel (``benchmarks/detection_accuracy.py``).
 
 Radiances are linear in [0, 1]; the laser is pure red (650 nm light does not reach
 the green and blue channels), so the detector finds dots in green and spots in
@@ -46,6 +50,8 @@ class RenderOptions:
 
     Attributes:
         supersample: samples per pixel along each axis (anti-aliasing).
+        refine: samples per pixel along each axis where an edge crosses it (at most
+            ``supersample``: no refinement).
         noise: std of the Gaussian sensor noise in grey levels (0-255).
         blur: std of the Gaussian optical blur in pixels (0: none).
         exposure: gain on the radiance before quantisation (1: white paper at ~184 of 255).
@@ -58,6 +64,7 @@ class RenderOptions:
     """
 
     supersample: int = 3
+    refine: int = 12
     noise: float = 1.0
     blur: float = 0.6
     exposure: float = 1.0
@@ -71,6 +78,7 @@ class RenderOptions:
     def __post_init__(self):
         checks = {
             "supersample": self.supersample >= 1,
+            "refine": self.refine >= 0,
             "noise": self.noise >= 0,
             "blur": self.blur >= 0,
             "exposure": self.exposure > 0,
@@ -192,7 +200,41 @@ def _chess_band(rays, R, t, grid):
     return jax.lax.map(lambda r: jax.vmap(f)(*r), rays)
 
 
+def _cell_means(f, centres, offsets):
+    """The mean of ``f`` (sample -> BGR radiance) over each cell's samples: centres (m, 2), offsets (k, 2)."""
+    return jax.vmap(jax.vmap(f))(centres[:, None, :] + offsets[None]).mean(axis=1)
+
+
+@jax.jit
+def _cata_fine(cam, mirror, body, centres, offsets, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts):
+    def f(uv):
+        o, d, v, s = _cata_ray(cam, mirror, uv, body[0], body[1])
+        return _cata_shade(o, d, v, s, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts)
+
+    return _cell_means(f, centres, offsets)
+
+
+@jax.jit
+def _pipe_fine(cam, mirror, body, centres, offsets, centre, axis, radius, spots, spot_on, opts):
+    def f(uv):
+        o, d, v, s = _cata_ray(cam, mirror, uv, body[0], body[1])
+        return _pipe_shade(o, d, v, s, centre, axis, radius, spots, spot_on, opts)
+
+    return _cell_means(f, centres, offsets)
+
+
+@jax.jit
+def _chess_fine(cam, centres, offsets, R, t, grid):
+    def f(uv):
+        ray = pixel_to_ray(cam, uv)
+        return _chess_sample(*ray, R, t, grid[0], grid[1], grid[2])
+
+    return _cell_means(f, centres, offsets)
+
+
 CHUNK = 32768
+EDGE_SPREAD = 0.01  # a pixel whose samples' radiances differ by more than this holds an edge
+REFINE_CELLS = 2048  # cells per call of the refinement (one compiled shape)
 
 
 def _chunked_samples(width: int, height: int, ss: int) -> tuple[jnp.ndarray, int]:
@@ -204,11 +246,17 @@ def _chunked_samples(width: int, height: int, ss: int) -> tuple[jnp.ndarray, int
     return samples.reshape(-1, CHUNK, 2), n
 
 
-def _finish(radiance: np.ndarray, opts: RenderOptions, seed: int) -> np.ndarray:
-    """Blur, exposure, sensor noise and quantisation of a linear radiance image (H, W, 3)."""
-    img = radiance * opts.exposure * 255.0
+def _finish(cells: np.ndarray, opts: RenderOptions, seed: int) -> np.ndarray:
+    """The image of a linear radiance image at ``opts.supersample`` cells per pixel along each axis
+    (H ss, W ss, 3): optical blur (on the cells: the lens blurs the light before a pixel gathers
+    it, so a feature narrower than a pixel keeps its sub-pixel place), each pixel the mean of its
+    cells, exposure, sensor noise and quantisation (H, W, 3)."""
+    ss = opts.supersample
+    img = cells * opts.exposure * 255.0
     if opts.blur > 0:
-        img = cv2.GaussianBlur(img, (0, 0), opts.blur)
+        img = cv2.GaussianBlur(img, (0, 0), opts.blur * ss)
+    h, w = img.shape[0] // ss, img.shape[1] // ss
+    img = img.reshape(h, ss, w, ss, 3).mean(axis=(1, 3))
     if opts.noise > 0:
         img = img + np.random.default_rng(seed).normal(0.0, opts.noise, img.shape)
     return np.clip(np.rint(img), 0, 255).astype(np.uint8)
@@ -228,15 +276,35 @@ class Renderer:
         ss = opts.supersample
         self._samples, self._n = _chunked_samples(camera.width, camera.height, ss)
         self._rays = None
+        self._body = jnp.asarray([opts.body_radius_mm, opts.body_gap_mm], dtype=float)
         if mirror is not None:
-            body = jnp.asarray([opts.body_radius_mm, opts.body_gap_mm], dtype=float)
-            self._rays = _cata_rays(camera, mirror, self._samples, body)
+            self._rays = _cata_rays(camera, mirror, self._samples, self._body)
         self._chess_rays = None
 
-    def _average(self, out) -> np.ndarray:
+    def _cells(self, out, fine) -> np.ndarray:
+        """The image at its samples' resolution (H ss, W ss, 3): each sample stands for the mean
+        radiance over its cell, ``1/ss`` px square. A cell an edge crosses (it or a neighbour differs
+        from a neighbour by more than ``EDGE_SPREAD``: an edge can pass between the samples) is
+        averaged over ``ceil(refine / ss)`` squared samples by
+        ``fine(centres (m, 2), offsets (k, 2)) -> (m, 3)``."""
         h, w, ss = self.camera.height, self.camera.width, self.opts.supersample
-        flat = np.asarray(out).reshape(-1, 3)[: self._n]
-        return flat.reshape(h, w, ss * ss, 3).mean(axis=2)
+        cells = np.asarray(out).reshape(-1, 3)[: self._n].reshape(h, w, ss, ss, 3)
+        cells = cells.transpose(0, 2, 1, 3, 4).reshape(h * ss, w * ss, 3)
+        sub = -(-self.opts.refine // ss)
+        if sub <= 1:
+            return cells
+        square = np.ones((3, 3), np.uint8)
+        spread = (cv2.dilate(cells, square) - cv2.erode(cells, square)).max(axis=2)
+        ys, xs = np.nonzero(cv2.dilate((spread > EDGE_SPREAD).astype(np.uint8), square))
+        n = len(ys)
+        centres = np.zeros((n + (-n) % REFINE_CELLS, 2))
+        centres[:n, 0], centres[:n, 1] = (xs + 0.5) / ss - 0.5, (ys + 0.5) / ss - 0.5
+        offsets = jnp.asarray(_sample_grid(1, 1, sub).reshape(-1, 2) / ss)
+        chunks = range(0, n, REFINE_CELLS)
+        means = [np.asarray(fine(jnp.asarray(centres[i : i + REFINE_CELLS]), offsets)) for i in chunks]
+        if means:
+            cells[ys, xs] = np.concatenate(means)[:n]
+        return cells
 
     def catadioptric(
         self,
@@ -271,11 +339,11 @@ class Renderer:
             spot_xyz[i], spot_wall[i] = x, names.index(b)
         o = self.opts
         opts = jnp.asarray([o.dot_radius_mm, o.spot_sigma_mm, o.spot_power], dtype=float)
-        out = _cata_band(
-            self._rays, walls_R, walls_t, jnp.asarray(dots), jnp.asarray(spot_xyz),
-            jnp.asarray(spot_wall), jnp.asarray(spot_wall >= 0), opts,
-        )  # fmt: skip
-        return _finish(self._average(out), o, seed)
+        scene = (walls_R, walls_t, jnp.asarray(dots), jnp.asarray(spot_xyz), jnp.asarray(spot_wall),
+                 jnp.asarray(spot_wall >= 0), opts)  # fmt: skip
+        out = _cata_band(self._rays, *scene)
+        fine = lambda px, off: _cata_fine(self.camera, self.mirror, self._body, px, off, *scene)  # noqa: E731
+        return _finish(self._cells(out, fine), o, seed)
 
     def pipe(self, centre, axis, radius: float, spots: np.ndarray, seed: int = 0) -> np.ndarray:
         """One catadioptric image from inside a straight pipe (BGR uint8): the pipe's axis through
@@ -288,11 +356,11 @@ class Renderer:
         spot_xyz[: len(spots)] = spots
         o = self.opts
         opts = jnp.asarray([o.dot_radius_mm, o.spot_sigma_mm, o.spot_power], dtype=float)
-        out = _pipe_band(
-            self._rays, jnp.asarray(centre, float), jnp.asarray(axis, float), jnp.asarray(float(radius)),
-            jnp.asarray(spot_xyz), jnp.arange(len(spot_xyz)) < len(spots), opts,
-        )  # fmt: skip
-        return _finish(self._average(out), o, seed)
+        scene = (jnp.asarray(centre, float), jnp.asarray(axis, float), jnp.asarray(float(radius)),
+                 jnp.asarray(spot_xyz), jnp.arange(len(spot_xyz)) < len(spots), opts)  # fmt: skip
+        out = _pipe_band(self._rays, *scene)
+        fine = lambda px, off: _pipe_fine(self.camera, self.mirror, self._body, px, off, *scene)  # noqa: E731
+        return _finish(self._cells(out, fine), o, seed)
 
     def chessboard(self, T_cam_board: Pose, cols: int, rows: int, square: float, seed: int = 0) -> np.ndarray:
         """One direct chessboard image (BGR uint8): ``cols x rows`` inner corners at ``(i, j) * square``, mm."""
@@ -302,7 +370,8 @@ class Renderer:
             self._chess_rays = _camera_rays(self.camera, self._samples)
         grid = jnp.asarray([cols, rows, square], dtype=float)
         out = _chess_band(self._chess_rays, T_cam_board.R, T_cam_board.t, grid)
-        return _finish(self._average(out), self.opts, seed)
+        fine = lambda px, off: _chess_fine(self.camera, px, off, T_cam_board.R, T_cam_board.t, grid)  # noqa: E731
+        return _finish(self._cells(out, fine), self.opts, seed)
 
 
 def _grid_shape(points: np.ndarray) -> tuple[int, int]:
