@@ -615,7 +615,10 @@ def staged(obs: Observations, camera: Camera | None = None, pk: Packed | None = 
         rep_m.notes.append(f"two-fold ambiguity resolved by the boards' fit: candidate {chosen + 1} kept")
     n_open = sum(s.board is None for v in obs.views for s in v.spots)
     if n_open:
-        obs, n_set = assign_spot_boards(obs, camera, mirror, pk, poses)
+        view_poses: list[dict[str, Pose]] = [{} for _ in obs.views]
+        for (vi, b), pose in zip(pk.pose_keys, poses, strict=True):
+            view_poses[vi][b] = pose
+        obs, n_set = assign_spot_boards(obs, camera, mirror, view_poses)
         pk = pack(obs)
         rep_p.notes.append(f"{n_set} of {n_open} spots without a board put on the first board plane their ray meets")
     fit = fit_lasers(camera, mirror, pk, poses, obs.n_lasers)
@@ -623,26 +626,27 @@ def staged(obs: Observations, camera: Camera | None = None, pk: Packed | None = 
 
 
 def assign_spot_boards(
-    obs: Observations, camera: Camera, mirror: Mirror, pk: Packed, poses: list[Pose]
+    obs: Observations, camera: Camera, mirror: Mirror, view_poses: list[dict[str, Pose]]
 ) -> tuple[Observations, int]:
     """Give each spot that names no board the board whose plane its reflected ray meets first.
 
     The camera sees the first surface along the reflected ray, so of the boards
-    with a pose in that view, the nearest plane ahead of the mirror is the one the
-    spot lies on (this settles spots near the corner of two walls, which the image
-    alone cannot).  That holds only where every board has a pose in the view; a
-    spot in a view where some board is missing keeps no board (and is not used).
+    with a pose in that view (``view_poses[v]``: ``T_cam_board`` by board), the nearest
+    plane ahead of the mirror is the one the spot lies on (this settles spots near the
+    corner of two walls, which the image alone cannot).  That holds only where every
+    board posed in some view has a pose in this one; a spot in a view where some board
+    is missing keeps no board (and is not used).
     Returns new observations and how many spots got a board.
     """
-    index = {k: i for i, k in enumerate(pk.pose_keys)}
-    walls = {b for _, b in pk.pose_keys}
+    walls = {b for poses in view_poses for b in poses}
     open_px = [s.pixel for v in obs.views for s in v.spots if s.board is None]
     rays = map_padded(_back_many, camera, mirror, rows=np.reshape(np.asarray(open_px, dtype=float), (-1, 2)))
     orgs, dirs, oks = (np.asarray(a) for a in (rays.point, rays.direction, rays.valid))
     views, n_set, k = [], 0, 0
     for vi, v in enumerate(obs.views):
         spots = []
-        cands = [(b, poses[index[(vi, b)]]) for b in sorted(walls) if (vi, b) in index]
+        here = view_poses[vi] if vi < len(view_poses) else {}
+        cands = [(b, here[b]) for b in sorted(walls) if b in here]
         for s in v.spots:
             if s.board is not None:
                 spots.append(s)

@@ -68,7 +68,15 @@ def corrected_observations(
     spot std) moved by minus its predicted centroid offset, at the calibration ``rig`` and its
     ``board_poses`` (per view, per board: ``T_cam_board``). Points without a pose, or whose
     offset cannot be computed (their image leaves the mirror), keep their pixel. Returns the
-    observations and counts with the RMS offset (px)."""
+    observations and counts with the RMS offset (px). A spot that names no board is taken on the
+    first board plane its reflected ray meets, as the calibration takes it
+    (:func:`slcvjax.calibration.staged.assign_spot_boards`)."""
+    planes = obs
+    if spot_sigma_mm is not None and any(s.board is None for v in obs.views for s in v.spots):
+        from ..calibration.staged import assign_spot_boards
+
+        walls = [{b: p for b, p in poses.items() if b in obs.boards} for poses in board_poses]
+        planes, _ = assign_spot_boards(obs, rig.camera, rig.mirror, walls)
     dot_rows, dot_at, spot_x, spot_n, spot_at = [], [], [], [], []
     for v, view in enumerate(obs.views):
         poses = board_poses[v] if v < len(board_poses) else {}
@@ -84,7 +92,7 @@ def corrected_observations(
             dot_at.extend((v, b, int(i)) for i in np.flatnonzero(seen))
         if spot_sigma_mm is None:
             continue
-        for j, s in enumerate(view.spots):
+        for j, s in enumerate(planes.views[v].spots):
             if s.board is None or s.board not in poses:
                 continue
             x, ok = line_plane_intersection(rig.lasers.points[s.laser], rig.lasers.directions[s.laser], poses[s.board],
