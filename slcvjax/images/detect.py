@@ -293,17 +293,23 @@ def _weighted_centroids(weight: np.ndarray, labels: np.ndarray, ids: list[int], 
 
 
 DOT_CONTRAST = 0.3  # a dot's pixel: below the wall by this fraction of the wall-to-darkest contrast
+DOT_SUPPORT = 0.04  # a dot's centroid sums over its pixels below the wall by this fraction, and 2 px around
+SPOT_SUPPORT = 4.0  # grey levels of red over green (blurred): the faintest part of a spot its centroid sums
 ROW_EVIDENCE = 0.15  # darker than the local wall by this fraction: something lies where a row would
 
 
-def find_dots(green: np.ndarray, disc: MirrorDisc, edge: int = 4, contrast: float = DOT_CONTRAST) -> np.ndarray:
+def find_dots(
+    green: np.ndarray, disc: MirrorDisc, edge: int = 4, contrast: float = DOT_CONTRAST, support: float = DOT_SUPPORT
+) -> np.ndarray:
     """Dark dots inside the mirror's disc: (K, 2) darkness-weighted centroids.
 
     A pixel is dark when it lies below the wall's level by ``contrast`` of the way to the
     darkest level (near the apex the cone squeezes a dot into a thin streak that the blur
     lightens to about half the full contrast). A region counts when it lies at least ``edge`` px
     inside the disc's outline, is not the image centre's dark body (regions holding the
-    ellipse centre or larger than 2 % of the disc are skipped) and has at least 3 pixels.
+    ellipse centre or larger than 2 % of the disc are skipped) and has at least 3 pixels. Its
+    centroid sums the darkness over the pixels below the wall by ``support`` of that contrast that
+    are connected to it (where no other dot's are), grown by 2 px: the whole of its blurred image.
     """
     wall = disc.inside_level
     darkest = min(disc.outside_level, float(np.percentile(green[disc.mask], 1)))
@@ -325,19 +331,43 @@ def find_dots(green: np.ndarray, disc: MirrorDisc, edge: int = 4, contrast: floa
         if 0 <= cv_ < labels.shape[0] and 0 <= cu < labels.shape[1] and labels[cv_, cu] == k:
             continue
         ids.append(k)
-    return _weighted_centroids(wall - green, labels, ids)
+    faint = (wall - green > support * (wall - darkest)) & disc.mask
+    return _weighted_centroids(wall - green, _with_faint_edges(labels, faint), ids)
 
 
-def find_spots(bgr: np.ndarray, disc: MirrorDisc, threshold: float = 25.0, edge: int = 2) -> np.ndarray:
+def _with_faint_edges(labels: np.ndarray, faint: np.ndarray) -> np.ndarray:
+    """Each labelled region widened to the component of ``faint`` (a lower threshold's mask, holding
+    every region) it lies in, when no other region lies in that component: a dot squeezed into a
+    thin streak crosses the detection threshold along part of its length only, and a centroid over
+    that part grown by a few pixels would cut off the streak's ends."""
+    n, comp = cv2.connectedComponents(faint.astype(np.uint8), connectivity=8)
+    at = np.zeros(labels.max() + 1, int)  # the faint component of each region
+    ys, xs = np.nonzero(labels)
+    at[labels[ys, xs]] = comp[ys, xs]
+    regions_in = np.bincount(at[1:], minlength=n)
+    owner = np.zeros(n, int)  # the one region of each faint component, or 0
+    single = np.flatnonzero(regions_in == 1)
+    single = single[single > 0]
+    owner[single] = [int(np.flatnonzero(at == c)[0]) for c in single]
+    out = owner[comp]
+    keep = labels > 0
+    out[keep] = labels[keep]
+    return out
+
+
+def find_spots(
+    bgr: np.ndarray, disc: MirrorDisc, threshold: float = 25.0, edge: int = 2, support: float = SPOT_SUPPORT
+) -> np.ndarray:
     """Laser spots inside the mirror's disc: (S, 2) centroids.
 
     Found where red minus green exceeds ``threshold`` grey levels; located by the
-    centroid of red / green - 1, the laser's light relative to the scene's.  That
-    ratio does not depend on the paper's albedo, so a spot partly on a dark dot
-    keeps its centre (a red-minus-green weight would be pulled off it); one with a
-    quarter of its pixels or more on a dot is skipped (the dot hides its profile).  A
-    spot closer than ``edge`` px to the disc's outline is skipped: the rim cuts its
-    image, and its centroid would lie off its centre.
+    centroid of red / green - 1, the laser's light relative to the scene's, over the
+    pixels above ``support`` connected to the spot (where no other spot's are), grown by
+    2 px: the whole of its profile, whose tails a cut at ``threshold`` would leave out.  A
+    spot whose bright part (above ``threshold``, and 2 px around) meets a dot's image is
+    skipped: the blur mixes the dot's darkness into the ratio at the dot's edge, and the
+    centroid moves by up to a fifth of a pixel.  A spot closer than ``edge`` px to the disc's outline is skipped: the
+    rim cuts its image, and its centroid would lie off its centre.
     """
     red = bgr[:, :, 2].astype(float) - bgr[:, :, 1].astype(float)
     red = cv2.GaussianBlur(red, (0, 0), 0.7)
@@ -346,18 +376,21 @@ def find_spots(bgr: np.ndarray, disc: MirrorDisc, threshold: float = 25.0, edge:
     green = bgr[:, :, 1].astype(float)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * edge + 1, 2 * edge + 1))
     core = cv2.erode(disc.mask.astype(np.uint8), kernel).astype(bool)
-    # a spot mostly on a dark dot is skipped too: the dot hides its profile
-    dark = green < 0.5 * (disc.inside_level + disc.outside_level)
+    wall = disc.inside_level
+    dotted = (wall - green > DOT_SUPPORT * (wall - disc.outside_level)) & disc.mask  # a dot's faintest edge
+    widened = _with_faint_edges(labels, (red > support) & disc.mask)
+    grow = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
     ids = []
     for k in range(1, n):
         if stats[k, cv2.CC_STAT_AREA] < 2:
             continue
-        reg = labels == k
-        if core[reg].all() and dark[reg].mean() < 0.25:
+        if not core[labels == k].all():
+            continue
+        bright = cv2.dilate((labels == k).astype(np.uint8), grow).astype(bool)
+        if not dotted[bright].any():
             ids.append(k)
-    # red over green cancels the paper's albedo (a spot half on a dark dot keeps its centre)
     raw = bgr[:, :, 2].astype(float) / np.maximum(green, 4.0) - 1.0
-    return _weighted_centroids(raw, labels, ids)
+    return _weighted_centroids(raw, widened, ids)
 
 
 def azimuth_deg(px: np.ndarray, centre: np.ndarray) -> np.ndarray:
