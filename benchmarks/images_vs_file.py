@@ -13,7 +13,7 @@ dot's and spot's image at that calibration (``corrected``) and two calibrations 
 that noise go beside it:
 
 * ``file``: the exact observation file (every visible dot, 360 rim points per view) with
-  Gaussian noise of the detection's sigma per kind;
+  Gaussian noise of the detection's sigma per kind (dots, spots, rim, corners);
 * ``subset``: the detected observations themselves, each pixel replaced by its exact
   projection plus Gaussian noise of the same sigma (same points and labels as the images;
   only the detection's error is exchanged for white noise).
@@ -59,26 +59,30 @@ def _nearest(points: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndarra
 
 
 def detection_errors(obs, exact, rim_curve):
-    """Per kind the detection error vectors (dots and spots together, rim, corners) and exact pixels."""
-    pts, rim, corners = [], [], []
+    """Per kind the detection's sigma (per axis): dots, spots, rim (distance to the curve), corners."""
+    dots, spots, rim, corners = [], [], [], []
     for vd, vt in zip(obs.views, exact.views, strict=True):
         ref = np.concatenate([px[s] for px, s in vt.boards.values()])
         for px, seen in vd.boards.values():
             if seen.any():
                 q, _ = _nearest(px[seen], ref)
-                pts.append(px[seen] - q)
+                dots.append(px[seen] - q)
         exact_spots = {s.laser: s.pixel for s in vt.spots}
-        pts.extend([(s.pixel - exact_spots[s.laser])[None] for s in vd.spots if s.laser in exact_spots])
+        spots.extend([(s.pixel - exact_spots[s.laser])[None] for s in vd.spots if s.laser in exact_spots])
         q, _ = _nearest(vd.rim, rim_curve)
         rim.append(vd.rim - q)
     for cd, ct in zip(obs.calibration_views, exact.calibration_views, strict=True):
         if cd.seen.any():
             e1, e2 = cd.pixels - ct.pixels, cd.pixels[::-1] - ct.pixels  # the board's 180 degree twin
             corners.append(e1 if np.abs(e1).mean() < np.abs(e2).mean() else e2)
-    pts, rim, corners = (np.concatenate(x) for x in (pts, rim, corners))
-    keep = np.linalg.norm(pts, axis=1) < 1.0  # mislabelled points (a row shift) are not noise
+    dots, spots, rim, corners = (np.concatenate(x) for x in (dots, spots, rim, corners))
+
+    def rms(e):  # mislabelled points (a row shift) are not noise
+        return float(np.sqrt(np.mean(e[np.linalg.norm(e, axis=1) < 1.0] ** 2)))
+
     sig = {
-        "points_px": float(np.sqrt(np.mean(pts[keep] ** 2))),
+        "dots_px": rms(dots),
+        "spots_px": rms(spots),
         # the distance to the curve; a few rim pixels are pulled off by a nearby dot: median-based
         "rim_px": float(np.median(np.linalg.norm(rim, axis=1)) / 0.6744897501960817),
         "rim_rms_px": float(np.sqrt(np.mean(np.sum(rim**2, axis=1)))),
@@ -97,11 +101,11 @@ def subset_with_white_noise(obs, exact, rim_curve, sig, rng):
             new = px.copy()
             if seen.any():
                 q, _ = _nearest(px[seen], ref)
-                new[seen] = q + rng.normal(0, sig["points_px"], q.shape)
+                new[seen] = q + rng.normal(0, sig["dots_px"], q.shape)
             boards[b] = (new, seen)
         exact_spots = {s.laser: s.pixel for s in vt.spots}
         spots = [
-            SpotObs(s.laser, s.board, exact_spots[s.laser] + rng.normal(0, sig["points_px"], 2))
+            SpotObs(s.laser, s.board, exact_spots[s.laser] + rng.normal(0, sig["spots_px"], 2))
             for s in vd.spots
             if s.laser in exact_spots
         ]
