@@ -20,11 +20,11 @@ import tempfile
 import time
 from pathlib import Path
 
-import jax.numpy as jnp
 import numpy as np
 from bench_forward import machine
+from images_vs_file import corner_errors, preset_truth
 
-from slcvjax import RenderOptions, calibrate_detected, detect_folder, make_scene, project_rim, render_scene, simulate
+from slcvjax import RenderOptions, calibrate_detected, detect_folder, render_scene
 from slcvjax.images.centroids import corrected_observations, detection_sizes
 
 MISLABEL_PX = 1.0
@@ -68,10 +68,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
-    scene = make_scene("paper")
-    exact, truth = simulate(scene)
-    curve, ok = project_rim(truth.rig, jnp.linspace(0, 2 * np.pi, 7200, endpoint=False))
-    rim_curve = np.asarray(curve)[np.asarray(ok)]
+    scene, exact, truth, rim_curve = preset_truth()
     levels = []
     for noise in (float(x) for x in args.noise.split(",")):
         with tempfile.TemporaryDirectory() as tmp:
@@ -84,12 +81,7 @@ def main() -> None:
         _, at_cal, notes = calibrate_detected(detected, correct_centroids=True)
         rim = np.concatenate([v.rim for v in detected.views])
         d = np.min(np.linalg.norm(rim[:, None, :] - rim_curve[None], axis=2), axis=1)
-        corners = []
-        for cd, ct in zip(detected.calibration_views, exact.calibration_views, strict=True):
-            if cd.seen.any():
-                e1, e2 = cd.pixels - ct.pixels, cd.pixels[::-1] - ct.pixels  # the board's 180 degree twin
-                corners.append(e1 if np.abs(e1).mean() < np.abs(e2).mean() else e2)
-        corners = np.concatenate(corners)
+        corners = corner_errors(detected, exact)
         row = {
             "image_noise_grey": noise,
             "render_s": t_render,

@@ -58,6 +58,25 @@ def _nearest(points: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return ref[j], d[np.arange(len(points)), j]
 
 
+def preset_truth():
+    """The paper preset's scene, its exact observations and truth, and its true rim curve (pixels)."""
+    scene = make_scene("paper")
+    exact, truth = simulate(scene)
+    curve, ok = project_rim(truth.rig, jnp.linspace(0, 2 * np.pi, 7200, endpoint=False))
+    return scene, exact, truth, np.asarray(curve)[np.asarray(ok)]
+
+
+def corner_errors(obs, exact) -> np.ndarray:
+    """(n, 2) detected chessboard corners minus their exact pixels (the board's 180 degree twin
+    taken where the detector numbered the corners from the other end)."""
+    out = []
+    for cd, ct in zip(obs.calibration_views, exact.calibration_views, strict=True):
+        if cd.seen.any():
+            e1, e2 = cd.pixels - ct.pixels, cd.pixels[::-1] - ct.pixels
+            out.append(e1 if np.abs(e1).mean() < np.abs(e2).mean() else e2)
+    return np.concatenate(out).reshape(-1, 2)
+
+
 def detection_errors(obs, exact, rim_curve):
     """Per kind the detection's sigma (per axis): dots, spots, rim (distance to the curve), corners."""
     dots, spots, rim, corners = [], [], [], []
@@ -71,10 +90,7 @@ def detection_errors(obs, exact, rim_curve):
         spots.extend([(s.pixel - exact_spots[s.laser])[None] for s in vd.spots if s.laser in exact_spots])
         q, _ = _nearest(vd.rim, rim_curve)
         rim.append(vd.rim - q)
-    for cd, ct in zip(obs.calibration_views, exact.calibration_views, strict=True):
-        if cd.seen.any():
-            e1, e2 = cd.pixels - ct.pixels, cd.pixels[::-1] - ct.pixels  # the board's 180 degree twin
-            corners.append(e1 if np.abs(e1).mean() < np.abs(e2).mean() else e2)
+    corners = [corner_errors(obs, exact)]
     dots, spots, rim, corners = (np.concatenate(x) for x in (dots, spots, rim, corners))
 
     def rms(e):  # mislabelled points (a row shift) are not noise
@@ -127,10 +143,7 @@ def main() -> None:
     ap.add_argument("--image-noise", type=float, default=1.0)
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
-    scene = make_scene("paper")
-    exact, truth = simulate(scene)
-    curve, ok = project_rim(truth.rig, jnp.linspace(0, 2 * np.pi, 7200, endpoint=False))
-    rim_curve = np.asarray(curve)[np.asarray(ok)]
+    scene, exact, truth, rim_curve = preset_truth()
     errs = {k: ([], []) for k in ("images", "corrected", "subset", "file")}
     rows = []
     t_render = []
