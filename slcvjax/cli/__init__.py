@@ -73,6 +73,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="the targets the observations declare fixed in one box (rigid_boards) as one pose per board in the "
         "box and one sensor pose per view; a board pose that does not fit the box is left out and reported",
     )
+    c.add_argument(
+        "--raw-centroids",
+        action="store_true",
+        help="image folders: calibrate from the centroids as detected (default: each dot's and spot's centroid "
+        "corrected for the mirror's distortion of its image at a first calibration, then calibrated again)",
+    )
     c.add_argument("--export-opencv", help="also write the camera as OpenCV FileStorage YAML")
     c.set_defaults(func=_command("calibrate"))
 

@@ -56,6 +56,7 @@ def run(args) -> int:
                 loss=args.loss,
                 loss_scale=args.loss_scale,
                 rigid=args.rigid,
+                correct_centroids=not args.raw_centroids,
             )
         except CalibrationError as e:
             raise FormatError(f"{path}: {e}") from None

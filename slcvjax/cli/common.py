@@ -106,10 +106,17 @@ def print_report(cal, name: str = "") -> None:
 
 
 def print_placed(notes: list[str]) -> None:
-    """One line for the targets the detector left out and the box placed (or could not)."""
-    if notes:
-        placed = sum("placed by the box" in n for n in notes)
-        print(f"{placed} of {len(notes)} targets the detector could not place were placed by the box's other walls")
+    """One line for the targets the detector left out and the box placed (or could not), and one
+    for the centroids' correction (:func:`slcvjax.images.centroids.calibrate_detected`'s notes)."""
+    from ..images.centroids import CENTROIDS_NOTE
+
+    targets = [n for n in notes if not n.startswith(CENTROIDS_NOTE)]
+    if targets:
+        placed = sum("placed by the box" in n for n in targets)
+        print(f"{placed} of {len(targets)} targets the detector could not place were placed by the box's other walls")
+    for n in notes:
+        if n.startswith(CENTROIDS_NOTE):
+            print(n)
 
 
 def export_opencv(path, camera) -> None:
