@@ -83,6 +83,7 @@ from .geometry.mirror import (  # noqa: E402
 from .geometry.pose import Pose, so3_exp, so3_log  # noqa: E402
 from .geometry.rig import (  # noqa: E402
     Rig,
+    distance_to_rim,
     laser_spot_cam,
     project_board_points,
     project_direct,
@@ -222,6 +223,7 @@ __all__ = [
     "detect_corners",
     "detect_folder",
     "differentiable_solution",
+    "distance_to_rim",
     "distort",
     "fit_circle",
     "fit_circle_3d",

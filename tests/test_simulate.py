@@ -110,6 +110,20 @@ def test_rim_pixels_lie_on_the_rim_circle(exact):
         assert np.abs(np.linalg.norm(x - c, axis=1) - float(mir.radius)).max() < 1e-8
 
 
+def test_distance_to_rim_is_the_offset_across_the_rims_image(exact):
+    """Rim points off the sampled angles, moved across the curve by known amounts: their
+    distance is that amount (to the curve's bending over such offsets, < 1e-4 px)."""
+    _, _, truth = exact
+    angles = jnp.asarray(np.random.default_rng(3).uniform(0, 2 * np.pi, 50))
+    uv, ok = (np.asarray(x) for x in sj.project_rim(truth.rig, angles))
+    ahead, _ = sj.project_rim(truth.rig, angles + 1e-6)
+    tangent = (np.asarray(ahead) - uv) / np.linalg.norm(np.asarray(ahead) - uv, axis=1, keepdims=True)
+    normal = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
+    shift = np.linspace(-0.05, 0.05, 50)
+    d = sj.distance_to_rim(truth.rig, uv[ok] + shift[ok, None] * normal[ok])
+    np.testing.assert_allclose(d, np.abs(shift[ok]), atol=1e-4)
+
+
 def test_lasers_are_visible_inside_a_150_mm_pipe(exact):
     scene, obs, truth = exact
     rig = truth.rig
