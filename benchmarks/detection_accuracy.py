@@ -10,8 +10,9 @@ as detected (``raw``), corrected for the mirror's distortion of their image at t
 and poses (``corrected_truth``), and corrected at the calibration made from these images
 (``corrected_calibration``, :func:`slcvjax.images.centroids.calibrate_detected` with
 ``correct_centroids=True``, as ``slcvjax calibrate`` does for detected images).  Rim pixels
-are measured by their distance to the true rim curve, chessboard corners against their exact
-projections.  Completeness: detected over visible dots and spots.
+are measured by their distance to the true rim curve (:func:`slcvjax.distance_to_rim`),
+chessboard corners against their exact projections.  Completeness: detected over visible dots
+and spots.
 """
 
 import argparse
@@ -24,7 +25,7 @@ import numpy as np
 from bench_forward import machine
 from images_vs_file import corner_errors, preset_truth
 
-from slcvjax import RenderOptions, calibrate_detected, detect_folder, render_scene
+from slcvjax import RenderOptions, calibrate_detected, detect_folder, distance_to_rim, render_scene
 from slcvjax.images.centroids import corrected_observations, detection_sizes
 
 MISLABEL_PX = 1.0
@@ -68,7 +69,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
-    scene, exact, truth, rim_curve = preset_truth()
+    scene, exact, truth, _ = preset_truth()
     levels = []
     for noise in (float(x) for x in args.noise.split(",")):
         with tempfile.TemporaryDirectory() as tmp:
@@ -79,8 +80,7 @@ def main() -> None:
         radii, sigma = detection_sizes(detected)
         at_truth, _ = corrected_observations(truth.rig, truth.board_poses, detected, radii, sigma)
         _, at_cal, notes = calibrate_detected(detected, correct_centroids=True)
-        rim = np.concatenate([v.rim for v in detected.views])
-        d = np.min(np.linalg.norm(rim[:, None, :] - rim_curve[None], axis=2), axis=1)
+        d = distance_to_rim(truth.rig, np.concatenate([v.rim for v in detected.views]))
         corners = corner_errors(detected, exact)
         row = {
             "image_noise_grey": noise,

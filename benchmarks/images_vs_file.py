@@ -43,6 +43,7 @@ from slcvjax import (
     calibrate_detected,
     cramer_rao,
     detect_folder,
+    distance_to_rim,
     laser_errors,
     make_scene,
     project_rim,
@@ -77,9 +78,9 @@ def corner_errors(obs, exact) -> np.ndarray:
     return np.concatenate(out).reshape(-1, 2)
 
 
-def detection_errors(obs, exact, rim_curve):
-    """Per kind the detection's sigma (per axis): dots, spots, rim (distance to the curve), corners."""
-    dots, spots, rim, corners = [], [], [], []
+def detection_errors(obs, exact, truth):
+    """Per kind the detection's sigma (per axis): dots, spots, rim (distance to the true curve), corners."""
+    dots, spots, corners = [], [], []
     for vd, vt in zip(obs.views, exact.views, strict=True):
         ref = np.concatenate([px[s] for px, s in vt.boards.values()])
         for px, seen in vd.boards.values():
@@ -88,10 +89,9 @@ def detection_errors(obs, exact, rim_curve):
                 dots.append(px[seen] - q)
         exact_spots = {s.laser: s.pixel for s in vt.spots}
         spots.extend([(s.pixel - exact_spots[s.laser])[None] for s in vd.spots if s.laser in exact_spots])
-        q, _ = _nearest(vd.rim, rim_curve)
-        rim.append(vd.rim - q)
     corners = [corner_errors(obs, exact)]
-    dots, spots, rim, corners = (np.concatenate(x) for x in (dots, spots, rim, corners))
+    dots, spots, corners = (np.concatenate(x) for x in (dots, spots, corners))
+    rim = distance_to_rim(truth.rig, np.concatenate([v.rim for v in obs.views]))
 
     def rms(e):  # mislabelled points (a row shift) are not noise
         return float(np.sqrt(np.mean(e[np.linalg.norm(e, axis=1) < 1.0] ** 2)))
@@ -100,8 +100,8 @@ def detection_errors(obs, exact, rim_curve):
         "dots_px": rms(dots),
         "spots_px": rms(spots),
         # the distance to the curve; a few rim pixels are pulled off by a nearby dot: median-based
-        "rim_px": float(np.median(np.linalg.norm(rim, axis=1)) / 0.6744897501960817),
-        "rim_rms_px": float(np.sqrt(np.mean(np.sum(rim**2, axis=1)))),
+        "rim_px": float(np.median(rim) / 0.6744897501960817),
+        "rim_rms_px": float(np.sqrt(np.mean(rim**2))),
         "corners_px": float(np.sqrt(np.mean(corners**2))),
     }
     return sig
@@ -156,7 +156,7 @@ def main() -> None:
             detected, _ = detect_folder(Path(tmp) / "images")
         # as the CLI calibrates: the targets the detector left out placed by the box's other walls
         first, obs, _ = calibrate_detected(detected, correct_centroids=False)
-        sig = detection_errors(obs, exact, rim_curve)
+        sig = detection_errors(obs, exact, truth)
         cases = {
             "images": obs,
             "corrected": obs,  # the same, calibrated again from centroids corrected at that calibration

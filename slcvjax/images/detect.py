@@ -8,12 +8,13 @@ it) and red minus green shows the laser spots.  Steps, per image:
    filled is the mirror's disc; an ellipse fitted to its outline gives the image
    centre used for azimuths (``atan2(v - cv, u - cu)``, degrees, so increasing
    azimuth turns from +u towards +v) and a first rim.
-2. **Rim**: along rays from that centre, the sub-pixel point where the green
-   profile crosses half-way between the mirror's and the outside's levels.
+2. **Rim**: in each sector of azimuth about that centre, a blurred step fitted to the
+   pixels across the ellipse gives the edge's sub-pixel place.
 3. **Dots**: dark connected regions inside the disc (away from its edge and not
-   the dark centre), each located by its darkness-weighted centroid.
+   the dark centre), each located by its darkness-weighted centroid over its whole
+   faint image.
 4. **Spots**: connected regions of red minus green above a threshold, each located
-   by its redness-weighted centroid.
+   by the centroid of red over green over its whole profile.
 
 Then, per image, the dots are grouped by azimuth into the boards of the setup
 (each wall target has a nominal azimuth and the directions of its x and y axes
@@ -241,36 +242,66 @@ def _ellipse_radius(disc: MirrorDisc, theta: np.ndarray) -> np.ndarray:
     return a * b / np.sqrt((b * np.cos(phi)) ** 2 + (a * np.sin(phi)) ** 2)
 
 
-def find_rim(green: np.ndarray, disc: MirrorDisc, n: int = 240, half: float = 6.0) -> np.ndarray:
-    """Sub-pixel rim edge pixels: along ``n`` rays, where green crosses half-way between inside and outside.
+RIM_CLEAR = 0.05  # a rim sector is fitted only where no pixel off its edge strays from its side's level by this
 
-    A ray is skipped where the crossing is not unique within ``half`` px of the
-    fitted ellipse (a dark dot near the edge, the image border).
+
+def find_rim(green: np.ndarray, disc: MirrorDisc, n: int = 240, half: float = 4.0) -> np.ndarray:
+    """Sub-pixel rim edge pixels, one per each of ``n`` equal sectors of azimuth about the disc's centre.
+
+    In a sector, the pixels within ``half`` px of the fitted ellipse (along the radius) are
+    fitted by a blurred step across the ellipse shifted by ``delta``: ``out + (in - out) *
+    Phi(-(d - delta) / s)``, ``d`` the pixel centre's radial offset from the ellipse, ``Phi`` the
+    normal CDF, with ``delta``, the blur ``s`` and both levels free (Gauss-Newton). The edge's
+    place is estimated from every pixel across it, so its sub-pixel phase against the pixel grid
+    does not bias it (a half-way crossing interpolated between pixels does, by a few hundredths
+    of a pixel). The rim pixel is the ellipse's point at the sector's middle azimuth moved by
+    ``delta``. A sector is skipped where a pixel more than 2 px inside the edge is darker than
+    the mirror's level, or one outside brighter than the background's, by ``RIM_CLEAR`` of their
+    contrast (a dark dot or a spot near the edge), at the image border, or where the fit does not
+    settle within the band.
     """
-    theta = np.linspace(0, 2 * np.pi, n, endpoint=False)
-    r0 = _ellipse_radius(disc, theta)
-    steps = np.arange(-half, half + 1e-9, 0.25)
-    rr = r0[:, None] + steps[None, :]
-    u = (disc.centre[0] + rr * np.cos(theta)[:, None]).astype(np.float32)
-    v = (disc.centre[1] + rr * np.sin(theta)[:, None]).astype(np.float32)
     h, w = green.shape
-    prof = cv2.remap(green.astype(np.float32), u, v, cv2.INTER_LINEAR, borderValue=-1.0)
-    mid = 0.5 * (disc.inside_level + disc.outside_level)
+    cu, cv_ = (float(c) for c in disc.centre)
+    reach = max(disc.axes) + half + 2.0
+    y0, y1 = int(max(np.floor(cv_ - reach), 0)), int(min(np.ceil(cv_ + reach) + 1, h))
+    x0, x1 = int(max(np.floor(cu - reach), 0)), int(min(np.ceil(cu + reach) + 1, w))
+    yy, xx = np.mgrid[y0:y1, x0:x1]
+    theta = np.mod(np.arctan2(yy - cv_, xx - cu), 2 * np.pi)
+    d = np.hypot(xx - cu, yy - cv_) - _ellipse_radius(disc, theta)
+    band = np.abs(d) <= half
+    border = (yy == 0) | (xx == 0) | (yy == h - 1) | (xx == w - 1)
+    d, theta, g, border = d[band], theta[band], green[y0:y1, x0:x1][band].astype(float), border[band]
+    sector = np.minimum((theta / (2 * np.pi) * n).astype(int), n - 1)
+    inside, outside = disc.inside_level, disc.outside_level
+    clear = RIM_CLEAR * (inside - outside)
+    stray = ((d < -2.0) & (g < inside - clear)) | ((d > 2.0) & (g > outside + clear)) | border
+    bad = np.bincount(sector[stray], minlength=n) > 0
+    order = np.argsort(sector, kind="stable")
+    starts = np.searchsorted(sector[order], np.arange(n + 1))
+    erf = np.vectorize(math.erf)
     out = []
-    for i in range(n):
-        p = prof[i]
-        if np.any(p < 0) or u[i].min() < 1 or v[i].min() < 1 or u[i].max() > w - 2 or v[i].max() > h - 2:
+    for k in range(n):
+        idx = order[starts[k] : starts[k + 1]]
+        if bad[k] or len(idx) < 12:
             continue
-        above = p > mid
-        cross = np.flatnonzero(above[:-1] & ~above[1:])
-        if len(cross) != 1 or above[1:][cross[0] :].any():
+        dk, gk = d[idx], g[idx]
+        p = np.array([0.0, 0.7, inside, outside])  # delta, s, in, out
+        for _ in range(30):
+            z = (dk - p[0]) / p[1]
+            phi = 0.5 * (1.0 - erf(z / np.sqrt(2.0)))
+            slope = (p[2] - p[3]) * np.exp(-0.5 * z**2) / np.sqrt(2 * np.pi) / p[1]
+            jac = np.stack([slope, slope * z, phi, 1.0 - phi], axis=1)
+            step = np.linalg.lstsq(jac, gk - (p[3] + (p[2] - p[3]) * phi), rcond=None)[0]
+            p = p + step
+            if not (abs(p[0]) < half / 2 and 0.1 < p[1] < half):
+                break
+            if abs(step[0]) < 1e-6:
+                break
+        if not (abs(p[0]) < half / 2 and 0.1 < p[1] < half and abs(step[0]) < 1e-6):
             continue
-        j = cross[0]
-        if not above[: j + 1].all():
-            continue
-        f = (p[j] - mid) / (p[j] - p[j + 1])
-        r = rr[i, j] + f * 0.25
-        out.append([disc.centre[0] + r * np.cos(theta[i]), disc.centre[1] + r * np.sin(theta[i])])
+        mid = (k + 0.5) * 2 * np.pi / n
+        r = float(_ellipse_radius(disc, np.array([mid]))[0]) + p[0]
+        out.append([cu + r * np.cos(mid), cv_ + r * np.sin(mid)])
     return np.array(out).reshape(-1, 2)
 
 
