@@ -60,6 +60,7 @@ def main():
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "processor": platform.processor()},
         "image": [rig.camera.width, rig.camera.height],
         "supersample": opts.supersample,
+        "refine": opts.refine,
         "rays_first_call_s (compile + run)": t_rays_first,
         "catadioptric_first_call_s (compile + run)": t_cata_first,
         "catadioptric_s": t_cata,

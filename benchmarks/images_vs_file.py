@@ -3,9 +3,9 @@
 Run: ``python benchmarks/images_vs_file.py [--seeds 6] [--image-noise 1.0] [--out FILE]``.
 
 For each seed the paper preset is rendered with sensor noise (``--image-noise`` grey levels,
-the seed's own noise), detected and calibrated ("images", as ``slcvjax calibrate`` does: the
-targets the detector left out placed by the box's other walls,
-:func:`slcvjax.images.centroids.calibrate_detected`).  The detection's errors are
+the seed's own noise), detected and calibrated from the centroids as detected ("images", as
+``slcvjax calibrate --raw-centroids`` does: the targets the detector left out placed by the
+box's other walls, :func:`slcvjax.images.centroids.calibrate_detected`).  The detection's errors are
 measured against the simulator's exact projections: sigma of the dots and spots, of the rim
 pixels (their distance to the true rim curve) and of the chessboard corners.  The same
 detection calibrated again from its centroids corrected for the mirror's distortion of each

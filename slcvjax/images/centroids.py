@@ -78,8 +78,7 @@ def corrected_observations(
     if spot_sigma_mm is not None and any(s.board is None for v in obs.views for s in v.spots):
         from ..calibration.staged import assign_spot_boards
 
-        walls = [{b: p for b, p in poses.items() if b in obs.boards} for poses in board_poses]
-        planes, _ = assign_spot_boards(obs, rig.camera, rig.mirror, walls)
+        planes, _ = assign_spot_boards(obs, rig.camera, rig.mirror, board_poses)
     dot_rows, dot_at, spot_x, spot_n, spot_at = [], [], [], [], []
     for v, view in enumerate(obs.views):
         poses = board_poses[v] if v < len(board_poses) else {}

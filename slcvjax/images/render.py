@@ -233,7 +233,7 @@ def _chess_fine(cam, centres, offsets, R, t, grid):
 
 
 CHUNK = 32768
-EDGE_SPREAD = 0.01  # a pixel whose samples' radiances differ by more than this holds an edge
+EDGE_SPREAD = 0.01  # a cell whose radiance differs from a neighbour's by more than this lies at an edge
 REFINE_CELLS = 2048  # cells per call of the refinement (one compiled shape)
 
 
