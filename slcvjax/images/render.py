@@ -206,6 +206,25 @@ def _cell_means(f, centres, offsets):
 
 
 @jax.jit
+def _fine_rays(cam, mirror, body, centres, offsets):
+    """The reflected ray of each sample of each cell: (m, k) of :func:`_cata_ray`'s four fields."""
+    f = jax.vmap(jax.vmap(lambda uv: _cata_ray(cam, mirror, uv, body[0], body[1])))
+    return f(centres[:, None, :] + offsets[None])
+
+
+@jax.jit
+def _cata_cached(rays, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts):
+    f = lambda o, d, v, s: _cata_shade(o, d, v, s, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts)  # noqa: E731
+    return jax.vmap(jax.vmap(f))(*rays).mean(axis=1)
+
+
+@jax.jit
+def _pipe_cached(rays, centre, axis, radius, spots, spot_on, opts):
+    f = lambda o, d, v, s: _pipe_shade(o, d, v, s, centre, axis, radius, spots, spot_on, opts)  # noqa: E731
+    return jax.vmap(jax.vmap(f))(*rays).mean(axis=1)
+
+
+@jax.jit
 def _cata_fine(cam, mirror, body, centres, offsets, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts):
     def f(uv):
         o, d, v, s = _cata_ray(cam, mirror, uv, body[0], body[1])
@@ -255,8 +274,7 @@ def _finish(cells: np.ndarray, opts: RenderOptions, seed: int) -> np.ndarray:
     img = cells * opts.exposure * 255.0
     if opts.blur > 0:
         img = cv2.GaussianBlur(img, (0, 0), opts.blur * ss)
-    h, w = img.shape[0] // ss, img.shape[1] // ss
-    img = img.reshape(h, ss, w, ss, 3).mean(axis=(1, 3))
+    img = cv2.resize(img, (img.shape[1] // ss, img.shape[0] // ss), interpolation=cv2.INTER_AREA)  # block means
     if opts.noise > 0:
         img = img + np.random.default_rng(seed).normal(0.0, opts.noise, img.shape)
     return np.clip(np.rint(img), 0, 255).astype(np.uint8)
@@ -277,33 +295,71 @@ class Renderer:
         self._samples, self._n = _chunked_samples(camera.width, camera.height, ss)
         self._rays = None
         self._body = jnp.asarray([opts.body_radius_mm, opts.body_gap_mm], dtype=float)
+        self._mirror_edges = None
         if mirror is not None:
             self._rays = _cata_rays(camera, mirror, self._samples, self._body)
+            self._mirror_edges = self._trace_mirror_edges()
         self._chess_rays = None
 
-    def _cells(self, out, fine) -> np.ndarray:
+    def _to_cells(self, samples) -> np.ndarray:
+        """Per-sample values (chunked, as the samples) as an image of cells (H ss, W ss, ...)."""
+        h, w, ss = self.camera.height, self.camera.width, self.opts.supersample
+        flat = np.asarray(samples).reshape(-1, *np.shape(samples)[2:])[: self._n]
+        cells = flat.reshape(h, w, ss, ss, *flat.shape[1:])
+        return cells.swapaxes(1, 2).reshape(h * ss, w * ss, *flat.shape[1:])
+
+    def _offsets(self) -> jnp.ndarray | None:
+        """The samples of a refined cell about its centre (k, 2), or None where nothing is refined."""
+        ss = self.opts.supersample
+        sub = -(-self.opts.refine // ss)
+        return None if sub <= 1 else jnp.asarray(_sample_grid(1, 1, sub).reshape(-1, 2) / ss)
+
+    def _trace_mirror_edges(self):
+        """The cells at the mirror's own edges (its rim, the body's reflection), which do not move
+        from view to view, with their samples' reflected rays traced once: ``(ys, xs, ray chunks)``."""
+        offsets = self._offsets()
+        if offsets is None:
+            return None
+        _, _, valid, seen = self._rays
+        kind = self._to_cells(valid.astype(np.uint8) + seen.astype(np.uint8))
+        square = np.ones((3, 3), np.uint8)
+        edge = cv2.dilate(kind, square) != cv2.erode(kind, square)
+        ys, xs = np.nonzero(cv2.dilate(edge.astype(np.uint8), square))
+        centres = self._cell_centres(ys, xs)
+        chunks = [_fine_rays(self.camera, self.mirror, self._body, c, offsets) for c in centres]
+        return ys, xs, chunks
+
+    def _cell_centres(self, ys, xs) -> list[jnp.ndarray]:
+        """The centres (px) of cells ``(ys, xs)`` in chunks of ``REFINE_CELLS`` (the last padded)."""
+        ss, n = self.opts.supersample, len(ys)
+        centres = np.zeros((n + (-n) % REFINE_CELLS, 2))
+        centres[:n, 0], centres[:n, 1] = (xs + 0.5) / ss - 0.5, (ys + 0.5) / ss - 0.5
+        return [jnp.asarray(centres[i : i + REFINE_CELLS]) for i in range(0, n, REFINE_CELLS)]
+
+    def _cells(self, out, fine, cached=None) -> np.ndarray:
         """The image at its samples' resolution (H ss, W ss, 3): each sample stands for the mean
         radiance over its cell, ``1/ss`` px square. A cell an edge crosses (it or a neighbour differs
         from a neighbour by more than ``EDGE_SPREAD``: an edge can pass between the samples) is
         averaged over ``ceil(refine / ss)`` squared samples by
-        ``fine(centres (m, 2), offsets (k, 2)) -> (m, 3)``."""
-        h, w, ss = self.camera.height, self.camera.width, self.opts.supersample
-        cells = np.asarray(out).reshape(-1, 3)[: self._n].reshape(h, w, ss, ss, 3)
-        cells = cells.transpose(0, 2, 1, 3, 4).reshape(h * ss, w * ss, 3)
-        sub = -(-self.opts.refine // ss)
-        if sub <= 1:
+        ``fine(centres (m, 2), offsets (k, 2)) -> (m, 3)``; the cells at the mirror's own edges by
+        ``cached(ray chunk) -> (m, 3)`` from their rays traced once (where given)."""
+        cells = self._to_cells(out)
+        offsets = self._offsets()
+        if offsets is None:
             return cells
         square = np.ones((3, 3), np.uint8)
-        spread = (cv2.dilate(cells, square) - cv2.erode(cells, square)).max(axis=2)
-        ys, xs = np.nonzero(cv2.dilate((spread > EDGE_SPREAD).astype(np.uint8), square))
-        n = len(ys)
-        centres = np.zeros((n + (-n) % REFINE_CELLS, 2))
-        centres[:n, 0], centres[:n, 1] = (xs + 0.5) / ss - 0.5, (ys + 0.5) / ss - 0.5
-        offsets = jnp.asarray(_sample_grid(1, 1, sub).reshape(-1, 2) / ss)
-        chunks = range(0, n, REFINE_CELLS)
-        means = [np.asarray(fine(jnp.asarray(centres[i : i + REFINE_CELLS]), offsets)) for i in chunks]
+        c32 = cells.astype(np.float32)
+        d = cv2.dilate(c32, square) - cv2.erode(c32, square)
+        spread = np.maximum(np.maximum(d[..., 0], d[..., 1]), d[..., 2])
+        edge = cv2.dilate((spread > EDGE_SPREAD).astype(np.uint8), square).astype(bool)
+        if cached is not None and self._mirror_edges is not None:
+            ys, xs, chunks = self._mirror_edges
+            edge[ys, xs] = False
+            cells[ys, xs] = np.concatenate([np.asarray(cached(c)) for c in chunks])[: len(ys)]
+        ys, xs = np.nonzero(edge)
+        means = [np.asarray(fine(c, offsets)) for c in self._cell_centres(ys, xs)]
         if means:
-            cells[ys, xs] = np.concatenate(means)[:n]
+            cells[ys, xs] = np.concatenate(means)[: len(ys)]
         return cells
 
     def catadioptric(
@@ -343,7 +399,7 @@ class Renderer:
                  jnp.asarray(spot_wall >= 0), opts)  # fmt: skip
         out = _cata_band(self._rays, *scene)
         fine = lambda px, off: _cata_fine(self.camera, self.mirror, self._body, px, off, *scene)  # noqa: E731
-        return _finish(self._cells(out, fine), o, seed)
+        return _finish(self._cells(out, fine, lambda rays: _cata_cached(rays, *scene)), o, seed)
 
     def pipe(self, centre, axis, radius: float, spots: np.ndarray, seed: int = 0) -> np.ndarray:
         """One catadioptric image from inside a straight pipe (BGR uint8): the pipe's axis through
@@ -360,7 +416,7 @@ class Renderer:
                  jnp.asarray(spot_xyz), jnp.arange(len(spot_xyz)) < len(spots), opts)  # fmt: skip
         out = _pipe_band(self._rays, *scene)
         fine = lambda px, off: _pipe_fine(self.camera, self.mirror, self._body, px, off, *scene)  # noqa: E731
-        return _finish(self._cells(out, fine), o, seed)
+        return _finish(self._cells(out, fine, lambda rays: _pipe_cached(rays, *scene)), o, seed)
 
     def chessboard(self, T_cam_board: Pose, cols: int, rows: int, square: float, seed: int = 0) -> np.ndarray:
         """One direct chessboard image (BGR uint8): ``cols x rows`` inner corners at ``(i, j) * square``, mm."""

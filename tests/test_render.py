@@ -1,0 +1,26 @@
+"""The renderer's edge refinement: the mirror's own edges (its rim, the body's reflection), traced
+once per rig, give the image that tracing every edge cell anew in each view gives."""
+
+import numpy as np
+import pytest
+
+from slcvjax.images.render import Renderer, RenderOptions
+from slcvjax.observations.simulate import make_scene, visible_spots
+
+
+@pytest.mark.slow
+def test_the_mirrors_edges_traced_once_give_the_image_traced_in_the_view():
+    scene = make_scene("paper", n_lasers=6, n_views=4)
+    rig = scene.rig
+    walls = [b for b in scene.boards if b != scene.chess_board]
+    renderer = Renderer(rig.camera, rig.mirror, RenderOptions(noise=0.0))
+    ys, _, _ = renderer._mirror_edges
+    assert len(ys) > 5000  # the rim's and the body's edge cells of a 640x480 image at 3x3 cells
+    view = ({b: scene.box_poses[2][b] for b in walls}, scene.boards, [(w, x) for _, w, x, _ in visible_spots(scene, 2)])
+    pipe = (np.array([0.0, 0.0, 60.0]), np.array([0.0, 0.0, 1.0]), 75.0, np.zeros((0, 3)))
+    cached = renderer.catadioptric(*view), renderer.pipe(*pipe)
+    renderer._mirror_edges = None  # every edge cell traced in the view
+    traced = renderer.catadioptric(*view), renderer.pipe(*pipe)
+    for a, b in zip(cached, traced, strict=True):
+        diff = np.abs(a.astype(int) - b.astype(int))
+        assert diff.max() <= 1 and np.count_nonzero(diff) <= 10, (diff.max(), np.count_nonzero(diff))
