@@ -24,6 +24,7 @@ import functools
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import cv2
 import equinox as eqx
@@ -62,6 +63,9 @@ from .lm import (
     Params,
     block_costs,
     covariance_of_linearisation,
+    leverage_share,
+    raw_normal,
+    sandwich_covariance,
     loss_index,
     make_masks,
     pad_masks,
@@ -197,12 +201,40 @@ def _block_costs(params: Params, pk: Packed, loss: str, scale: float) -> np.ndar
 
 def covariance_of(params: Params, pk: Packed, masks: Masks, loss: str, scale, sigma: float | None = None) -> Covariance:
     """:func:`slcvjax.calibration.lm.covariance_of_linearisation` at ``params`` of the problem ``pk`` (every kind
-    weighted 1), through its shape buckets (the compiled solve with no step linearises)."""
+    weighted 1), through its shape buckets (the compiled solve with no step linearises): with
+    ``sigma`` given, ``sigma^2 H^-1``; otherwise :func:`covariance_and_noise`'s."""
+    if sigma is None:
+        return covariance_and_noise(params, pk, masks, loss, scale)[0]
     layout, lin = _linearisation(params, pk, masks, loss, scale)
-    cov = _covariance_of_linearisation(
-        lin, pad_masks(layout, masks), None if sigma is None else jnp.asarray(sigma, dtype=float)
-    )
+    cov = _covariance_of_linearisation(lin, pad_masks(layout, masks), jnp.asarray(sigma, dtype=float))
     return cov._replace(blocks=layout.unpad_blocks(cov.blocks))
+
+
+def covariance_and_noise(params: Params, pk: Packed, masks: Masks, loss: str, scale) -> "tuple[Covariance, KindNoise]":
+    """The covariance of the solution ``params`` where each kind of observation has its own noise
+    (:func:`kind_noise`): ``H^-1 (sum_k sigma_k^2 N_k) H^-1`` (``N_k`` the kind's ``J^T W J``;
+    :func:`slcvjax.calibration.lm.sandwich_covariance`), the solve having weighted every kind 1.
+    Rendered images give the kinds different noise (spots' centroids noisier than dots', the
+    rim's fitted edge far less noisy), which one pooled sigma would misstate.  A kind with too
+    few free rows for its own sigma takes the pooled one.  With one noise for every kind it is
+    ``sigma^2 H^-1``."""
+    layout, full, parts = _kind_linearisations(params, pk, masks, loss, scale)
+    noise = _noise_of(full, parts)
+    k = float(jnp.sum(pad_masks(layout, masks).glob * full.seen_glob)) + 6 * float(
+        jnp.sum(pad_masks(layout, masks).blocks * full.seen_blocks)
+    )
+    pooled2 = float(full.weighted_sq) / max(float(full.n_valid) - k, 1.0)
+    meat = None
+    for p, sig, n in zip(parts, noise.sigma, noise.rows, strict=True):
+        if n == 0:
+            continue
+        raw = _raw_normal_jit(p.normal, p.seen_glob, p.seen_blocks)
+        s2 = sig**2 if np.isfinite(sig) else pooled2
+        meat = jax.tree_util.tree_map(lambda a, s2=s2: s2 * a, raw) if meat is None else jax.tree_util.tree_map(
+            lambda m, a, s2=s2: m + s2 * a, meat, raw
+        )
+    cov = _sandwich_jit(full, meat, pad_masks(layout, masks))
+    return cov._replace(blocks=layout.unpad_blocks(cov.blocks)), noise
 
 
 def kind_sigmas(params: Params, pk: Packed, min_count: int = 10) -> np.ndarray:
@@ -222,6 +254,62 @@ def _sigmas_of(norm, kind, ok, min_count: int = 10) -> np.ndarray:
         if sel.sum() >= min_count:
             out[k] = np.median(norm[sel]) / (HALF_NORMAL_MEDIAN if k == Kind.RIM else RAYLEIGH_MEDIAN)
     return out
+
+
+_leverage_share_jit = jax.jit(leverage_share)
+_sandwich_jit = jax.jit(sandwich_covariance)
+_raw_normal_jit = jax.jit(raw_normal)
+MIN_FREE_ROWS = 20  # a kind whose rows leave fewer free than this takes the pooled sigma
+
+
+class KindNoise(NamedTuple):
+    """Per kind (dot, spot, rim, chess corner): its valid scalar rows, the parameters its rows
+    fix (the sum of their leverages), and its noise sigma (px) over the rows left free (NaN where
+    fewer than :data:`MIN_FREE_ROWS` are)."""
+
+    rows: np.ndarray
+    leverage: np.ndarray
+    sigma: np.ndarray
+
+
+def _kind_linearisations(params: Params, pk: Packed, masks: Masks, loss: str, scale):
+    """The padded layout, the linearisation at ``params`` with every kind weighted 1 (as the
+    solve weighs them), and one per kind with that kind alone (the compiled solve with no
+    step: nothing new compiles)."""
+    layout = Layout.of(pk)
+    args = (pad_params(layout, params), layout.pad_packed(pk), pad_masks(layout, masks), loss, scale, 0)
+    full = _solve(*args).linearisation
+    one = np.eye(len(Kind))
+    return layout, full, [_solve(*args, kind_weight=tuple(one[k])).linearisation for k in Kind]
+
+
+def _noise_of(full, parts) -> KindNoise:
+    t = full.table
+    real = np.asarray(t.valid) & np.asarray(t.present)
+    kinds = np.asarray(t.kind)
+    rows = np.array([(1.0 if k == Kind.RIM else 2.0) * np.sum(real & (kinds == k)) for k in Kind])
+    lev = np.array(
+        [float(_leverage_share_jit(full.normal, p.normal, p.seen_glob, p.seen_blocks)) if r else 0.0
+         for p, r in zip(parts, rows, strict=True)]
+    )  # fmt: skip
+    free = rows - lev
+    wsq = np.array([float(p.weighted_sq) for p in parts])
+    sigma = np.where(free >= MIN_FREE_ROWS, np.sqrt(wsq / np.maximum(free, 1.0)), np.nan)
+    return KindNoise(rows, lev, sigma)
+
+
+def kind_noise(params: Params, pk: Packed, masks: Masks | None = None, loss: str = "huber", scale=1.0) -> KindNoise:
+    """Each kind's noise sigma at the solution ``params``, from its robustly weighted squared
+    residuals over its rows less the parameters they fix (:class:`KindNoise`,
+    :func:`slcvjax.calibration.lm.leverage_share`).
+
+    Board poses are fixed by their dots and, where a board shows few dots, by its spots; the
+    lasers by the spots: on the paper preset the spots' rows fix about half of what they hold
+    (144 of 296), so their residuals understate their noise by about 1.4x.  Over all kinds the
+    leverages add up to the number of estimated parameters."""
+    masks = make_masks(params) if masks is None else masks
+    _, full, parts = _kind_linearisations(params, pk, masks, loss, scale)
+    return _noise_of(full, parts)
 
 
 def robust_sigma(params: Params, pk: Packed) -> float:
@@ -276,7 +364,7 @@ class CalibrationResult:
     scale: float
     passes: list[JointPass]
     timings: dict = field(default_factory=dict)
-    kind_sigma: dict = field(default_factory=dict)  # per kind noise sigma (px) from its median residual
+    kind_sigma: dict = field(default_factory=dict)  # per kind noise sigma (px) over its free rows (kind_noise)
     repairs: list = field(default_factory=list)  # observations relabelled or left out (see :func:`_repair`)
     box: dict | None = None  # the rigid box model's boards, where it was used (see :func:`_rigid_refine`)
 
@@ -869,8 +957,8 @@ def _calibrate_lockstep(
         run(PASS_C2, again)
     out = []
     for tr in trials:
-        cov = covariance_of(tr.params, tr.pk, tr.masks, loss, tr.scale)
-        sigmas = kind_sigmas(tr.params, tr.pk)
+        cov, noise = covariance_and_noise(tr.params, tr.pk, tr.masks, loss, tr.scale)
+        sigmas = noise.sigma
         out.append(
             CalibrationResult(
                 tr.params,
@@ -1038,13 +1126,19 @@ def _rigid_refine(res: CalibrationResult, obs: Observations, group: list[str], m
         cur = cur.select(~np.isin(pose_d, left), ~np.isin(np.asarray(cur.spot_pose)[:n_s], left))
     # linearised again at the solution: the rim rows normalised there, as the free covariance is
     layout, lin = _linearisation(params, model.packed(cur), masks, res.loss, res.scale)
-    cov = _covariance_of_linearisation(lin, pad_masks(layout, masks), None)
-    cov = cov._replace(blocks=layout.unpad_blocks(cov.blocks))
-    pose_cov = board_pose_covariances(model, params, lin, masks, cov, layout)
+    pooled = _covariance_of_linearisation(lin, pad_masks(layout, masks), None)
+    pooled = pooled._replace(blocks=layout.unpad_blocks(pooled.blocks))
+    # the rig's covariance with each kind's own noise; the boards' poses (in the box and per
+    # view, which need the box's cross covariances) with the pooled sigma
+    cov, noise = covariance_and_noise(params, model.packed(cur), masks, res.loss, res.scale)
+    pose_cov = board_pose_covariances(model, params, lin, masks, pooled, layout)
     g = res.rig.tangent_dim
-    glob = np.asarray(cov.glob)
+    glob = np.asarray(pooled.glob)
     cov_out = Covariance(
-        glob[:g, :g], np.concatenate([pose_cov, np.asarray(cov.blocks)[model.n_blocks :]]), cov.sigma, cov.dof
+        np.asarray(cov.glob)[:g, :g],
+        np.concatenate([pose_cov, np.asarray(pooled.blocks)[model.n_blocks :]]),
+        cov.sigma,
+        cov.dof,
     )
     out_params = Params(params.rig, board_poses_of(model, params), params.chess)
     std = box_pose_std(params, glob, model)
@@ -1071,7 +1165,7 @@ def _rigid_refine(res: CalibrationResult, obs: Observations, group: list[str], m
         passes=passes,
         repairs=repairs,
         timings=timings,
-        kind_sigma=dict(zip(KIND_NAMES, kind_sigmas(out_params, cur).tolist(), strict=True)),
+        kind_sigma=dict(zip(KIND_NAMES, noise.sigma.tolist(), strict=True)),
         box=box,
     )
 

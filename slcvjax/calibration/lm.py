@@ -975,6 +975,25 @@ def schur_inverse(ne: Normal) -> tuple[Array, Array, Array]:
     return jnp.linalg.inv(S), jnp.linalg.inv(ne.D), Dinv_Bt
 
 
+def leverage_share(full: Normal, part: Normal, part_seen_glob, part_seen_blocks) -> Array:
+    """``tr(H^-1 N)``: the parameters' share taken from the rows whose normal equations are
+    ``part`` (:func:`finish_normal`'s, ``part_seen_*`` its reach), ``H`` being ``full``'s.
+
+    Summed over the rows it is the sum of their leverages (the diagonal of ``W J H^-1 J^T``):
+    how many of the estimated parameters those rows fix, so that their residuals are smaller
+    than their noise by that many squared sigmas.  Over a partition of all the rows the
+    shares add up to the number of estimated parameters.  ``finish_normal``'s unit diagonals
+    of what ``part`` does not reach are taken off first."""
+    Sinv, Dinv, Dinv_Bt = schur_inverse(full)
+    raw = raw_normal(part, part_seen_glob, part_seen_blocks)
+    A, D = raw.A, raw.D
+    # the blocks of H^-1: S^-1; -S^-1 (D_k^-1 B_k^T)^T; D_k^-1 + D_k^-1 B_k^T S^-1 B_k D_k^-1
+    t = jnp.trace(Sinv @ A)
+    t = t - 2.0 * jnp.einsum("gh,kih,kgi->", Sinv, Dinv_Bt, part.B)
+    t = t + jnp.einsum("kij,kji->", Dinv, D)
+    return t + jnp.einsum("kig,gh,kjh,kji->", Dinv_Bt, Sinv, Dinv_Bt, D)
+
+
 def covariance_of_linearisation(lin: Linearisation, masks: Masks, sigma: float | Array | None = None) -> Covariance:
     """``sigma^2 (J^T W J)^-1`` by the Schur complement; ``sigma`` from the residuals when None.
 
@@ -989,6 +1008,47 @@ def covariance_of_linearisation(lin: Linearisation, masks: Masks, sigma: float |
     cov_g = s2 * Sinv * mg[:, None] * mg[None, :]
     cov_p = s2 * (Dinv + jnp.einsum("kig,gh,kjh->kij", Dinv_Bt, Sinv, Dinv_Bt))
     cov_p = cov_p * (masks.blocks * lin.seen_blocks)[:, None, None]
+    return Covariance(cov_g, cov_p, jnp.sqrt(s2), dof)
+
+
+def raw_normal(part: Normal, seen_glob, seen_blocks) -> Normal:
+    """``part`` (:func:`finish_normal`'s) without the unit diagonals it gave what its rows do not
+    reach (``seen_*``): the plain sums ``J^T W J`` of its rows."""
+    return part._replace(
+        A=part.A - jnp.diag(1.0 - seen_glob), D=part.D - (1.0 - seen_blocks)[:, None, None] * jnp.eye(6)
+    )
+
+
+def sandwich_covariance(lin: Linearisation, meat: Normal, masks: Masks) -> Covariance:
+    """``H^-1 M H^-1`` by the Schur complement: the covariance of the solution of the normal
+    equations ``H`` (``lin``'s) when its rows' noise gives ``J^T W Cov(r) W J = M`` (``meat``, a
+    plain sum in Schur form, :func:`raw_normal`), as where each kind of observation has its own
+    noise sigma and ``M = sum_k sigma_k^2 N_k``.  With ``M = sigma^2 H`` it is
+    :func:`covariance_of_linearisation`'s.  ``sigma`` and ``dof`` are the pooled ones.
+
+    With ``E_k = D_k^-1 B_k^T`` the global block is ``S^-1 (A_M - sum_k (C_k E_k + E_k^T C_k^T)
+    + sum_k E_k^T D_Mk E_k) S^-1`` (``C_k`` block ``k``'s coupling in ``M``) and pose block ``k``'s
+    ``E_k G E_k^T - E_k S^-1 F_k D_k^-1 - (..)^T + D_k^-1 D_Mk D_k^-1`` with
+    ``F_k = C_k - E_k^T D_Mk``."""
+    Sinv, Dinv, E = schur_inverse(lin.normal)
+    C = meat.B  # (NB, G, 6)
+    CE = jnp.einsum("kgi,kih->gh", C, E)
+    inner = meat.A - CE - CE.T + jnp.einsum("kig,kij,kjh->gh", E, meat.D, E)
+    cov_g = Sinv @ inner @ Sinv
+    F = C - jnp.einsum("kig,kij->kgj", E, meat.D)  # (NB, G, 6)
+    cross = jnp.einsum("kig,gh,khj,kjl->kil", E, Sinv, F, Dinv)
+    cov_p = (
+        jnp.einsum("kig,gh,kjh->kij", E, cov_g, E)
+        - cross
+        - jnp.swapaxes(cross, 1, 2)
+        + jnp.einsum("kij,kjl,klm->kim", Dinv, meat.D, Dinv)
+    )
+    k = jnp.sum(masks.glob * lin.seen_glob) + 6 * jnp.sum(masks.blocks * lin.seen_blocks)
+    dof = (lin.n_valid - k).astype(jnp.int64)
+    mg = masks.glob * lin.seen_glob
+    cov_g = cov_g * mg[:, None] * mg[None, :]
+    cov_p = cov_p * (masks.blocks * lin.seen_blocks)[:, None, None]
+    s2 = lin.weighted_sq / jnp.maximum(dof, 1).astype(float)
     return Covariance(cov_g, cov_p, jnp.sqrt(s2), dof)
 
 

@@ -1,0 +1,115 @@
+"""Each kind's own noise: leverages, the sandwich covariance, and the per-kind sigmas."""
+
+import copy
+
+import jax
+import numpy as np
+import pytest
+
+from slcvjax.calibration import lm
+from slcvjax.geometry.rig import laser_columns
+from slcvjax.calibration.calibrate import calibrate, covariance_of, kind_noise, kind_sigmas
+from slcvjax.observations.simulate import make_scene, simulate
+
+jax.config.update("jax_enable_x64", True)
+
+G, NB = 5, 3
+
+
+def _schur_problem(rng, n_rows=40):
+    """Dense rows of a small Schur-form problem: each row touches the globals and one pose block."""
+    jg = rng.normal(size=(n_rows, G))
+    jp = rng.normal(size=(n_rows, 6))
+    block = rng.integers(0, NB, n_rows)
+    block[: 3 * 7] = np.repeat(np.arange(NB), 7)  # every block well determined
+    dense = np.zeros((n_rows, G + 6 * NB))
+    dense[:, :G] = jg
+    for i, b in enumerate(block):
+        dense[i, G + 6 * b : G + 6 * b + 6] = jp[i]
+    return jg, jp, block, dense
+
+
+def _normal(jg, jp, block, sel) -> lm.Normal:
+    """The plain sums ``J^T J`` of the rows ``sel`` in Schur form."""
+    A = jg[sel].T @ jg[sel]
+    B = np.zeros((NB, G, 6))
+    D = np.zeros((NB, 6, 6))
+    for i in np.flatnonzero(sel):
+        B[block[i]] += np.outer(jg[i], jp[i])
+        D[block[i]] += np.outer(jp[i], jp[i])
+    return lm.Normal(A, np.zeros(G), B, D, np.zeros((NB, 6)))
+
+
+def test_leverage_share_is_the_trace_of_the_hat_matrix():
+    rng = np.random.default_rng(0)
+    jg, jp, block, dense = _schur_problem(rng)
+    every = np.ones(len(jg), bool)
+    full = _normal(jg, jp, block, every)
+    hat = dense @ np.linalg.solve(dense.T @ dense, dense.T)
+    part = rng.uniform(size=len(jg)) < 0.4
+    share = lm.leverage_share(full, _normal(jg, jp, block, part), np.ones(G), np.ones(NB))
+    assert float(share) == pytest.approx(np.trace(hat[np.ix_(part, part)]), rel=1e-10)
+    # over a partition of the rows the shares add up to the number of parameters
+    rest = lm.leverage_share(full, _normal(jg, jp, block, ~part), np.ones(G), np.ones(NB))
+    assert float(share + rest) == pytest.approx(G + 6 * NB, rel=1e-10)
+
+
+def test_sandwich_covariance_is_the_dense_one():
+    rng = np.random.default_rng(1)
+    jg, jp, block, dense = _schur_problem(rng)
+    kinds = rng.integers(0, 2, len(jg))
+    sig = np.array([0.3, 1.7])
+    full = _normal(jg, jp, block, np.ones(len(jg), bool))
+    parts = [_normal(jg, jp, block, kinds == k) for k in range(2)]
+    meat = jax.tree_util.tree_map(lambda a, b: sig[0] ** 2 * a + sig[1] ** 2 * b, *parts)
+    lin = lm.Linearisation(full, None, np.ones(G), np.ones(NB), float(len(jg)), 1.0)
+    cov = lm.sandwich_covariance(lin, meat, lm.Masks(np.ones(G), np.ones(NB)))
+    Hinv = np.linalg.inv(dense.T @ dense)
+    expected = Hinv @ (dense.T @ np.diag(sig[kinds] ** 2) @ dense) @ Hinv
+    np.testing.assert_allclose(cov.glob, expected[:G, :G], rtol=1e-9, atol=1e-12)
+    for b in range(NB):
+        s = slice(G + 6 * b, G + 6 * b + 6)
+        np.testing.assert_allclose(cov.blocks[b], expected[s, s], rtol=1e-9, atol=1e-12)
+    # one noise for every row: sigma^2 H^-1
+    same = lm.sandwich_covariance(lin, jax.tree_util.tree_map(lambda a: 4.0 * a, full), lm.Masks(np.ones(G), np.ones(NB)))
+    np.testing.assert_allclose(same.glob, 4.0 * Hinv[:G, :G], rtol=1e-9)
+
+
+def _with_kind_noise(exact, sig, rng):
+    o = copy.deepcopy(exact)
+    for v in o.views:
+        for px, seen in v.boards.values():
+            px[seen] += rng.normal(0, sig[0], px[seen].shape)
+        for s in v.spots:
+            s.pixel = s.pixel + rng.normal(0, sig[1], 2)
+        v.rim[:] = v.rim + rng.normal(0, sig[2], v.rim.shape)
+    for c in o.calibration_views:
+        c.pixels[c.seen] += rng.normal(0, sig[3], c.pixels[c.seen].shape)
+    return o
+
+
+@pytest.mark.slow
+def test_each_kind_sigma_is_its_noise():
+    """Dots, spots, rim and corners with their own white noise (not the preset's laser count or
+    views): each kind's sigma over its free rows is its noise; the spots' residuals alone (their
+    median) understate it, as their rows fix the lasers and, where a board shows few dots, its
+    pose.  The leverages add up to the parameters estimated."""
+    exact, _ = simulate(make_scene("paper", n_lasers=7, n_views=13))
+    sig = np.array([0.02, 0.05, 0.008, 0.03])
+    est, med = [], []
+    for seed in (3, 4):
+        res = calibrate(_with_kind_noise(exact, sig, np.random.default_rng(seed)))
+        noise = kind_noise(res.params, res.packed, res.masks, res.loss, res.scale)
+        np.testing.assert_allclose(noise.sigma, [res.kind_sigma[k] for k in ("dot", "spot", "rim", "chess")])
+        # the estimated parameters: the rows less the degrees of freedom the covariance counts
+        assert noise.leverage.sum() == pytest.approx(noise.rows.sum() - int(res.cov.dof), rel=1e-9)
+        est.append(noise.sigma)
+        med.append(kind_sigmas(res.params, res.packed))
+        # the lasers' covariance takes the spots' own noise, 2.5x the dots' and 6x the rim's:
+        # above what one pooled sigma gives
+        pooled = covariance_of(res.params, res.packed, res.masks, res.loss, res.scale, sigma=float(res.cov.sigma))
+        g = laser_columns(0).start
+        assert np.trace(res.cov.glob[g:, g:]) > 1.5 * np.trace(pooled.glob[g:, g:])
+    ratio = np.mean(est, axis=0) / sig
+    np.testing.assert_allclose(ratio, 1.0, atol=0.12)
+    assert np.mean(med, axis=0)[1] / sig[1] < 0.8
