@@ -334,8 +334,10 @@ def pipe_experiment(
 def measurement_inputs(path, cal) -> tuple[float | None, np.ndarray | None]:
     """From a read calibration: the default pixel sigma and the rig covariance (or None).
 
-    The pixel sigma is the calibration's per-coordinate residual sigma
-    (``residuals.sigma_px``; ``rms_px / sqrt(2)`` when only the 2D RMS is there).
+    The pixel sigma is the calibration's noise sigma of its spots
+    (``residuals.by_kind_sigma_px.spot``: what the spots' residuals say over the rows the fit
+    leaves free), else its pooled one (``residuals.sigma_px``; ``rms_px / sqrt(2)`` when only
+    the 2D RMS is there).
     The covariance is ``uncertainty.covariance.matrix`` when present; a malformed
     one raises :class:`FormatError` naming the file and the field.
     """
@@ -344,11 +346,13 @@ def measurement_inputs(path, cal) -> tuple[float | None, np.ndarray | None]:
     if cal.rig.mirror is None or cal.rig.lasers.n == 0:
         raise FormatError(f"{path}: mirror, lasers: a camera-only calibration cannot measure laser spots")
     res = cal.extra.get("residuals") or {}
-    sigma = res.get("sigma_px")
+    spot = (res.get("by_kind_sigma_px") or {}).get("spot") if isinstance(res.get("by_kind_sigma_px"), dict) else None
+    sigma = spot if spot is not None else res.get("sigma_px")
+    field = "by_kind_sigma_px.spot" if spot is not None else "sigma_px"
     if sigma is None and res.get("rms_px") is not None:
         sigma = float(res["rms_px"]) / np.sqrt(2.0)
     if sigma is not None and (not np.isfinite(float(sigma)) or float(sigma) < 0):
-        raise FormatError(f"{path}: residuals.sigma_px: expected a non-negative number, got {sigma}")
+        raise FormatError(f"{path}: residuals.{field}: expected a non-negative number, got {sigma}")
     mat = ((cal.extra.get("uncertainty") or {}).get("covariance") or {}).get("matrix")
     cov = None
     if mat is not None:
