@@ -38,6 +38,12 @@ def test_demo_runs_end_to_end_from_images(tmp_path, capsys):
     assert read_observations(out_dir / "detected.json").views[0].spots
 
 
+def test_demo_refuses_both_pose_models(tmp_path, capsys):
+    assert cli.main(["demo", "--rigid", "--free-poses", "--out", str(tmp_path / "d")]) == 2
+    assert "--free-poses" in capsys.readouterr().err
+    assert not (tmp_path / "d").exists()
+
+
 @pytest.mark.slow
 def test_console_script_reports_usage_errors():
     r = subprocess.run([sys.executable, "-m", "slcvjax.cli", "nonsense"], capture_output=True, text=True)

@@ -209,7 +209,12 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument(
         "--rigid",
         action="store_true",
-        help="calibrate with the rigid target box model (one pose per wall, one sensor pose per view)",
+        help="calibrate with the rigid target box model (one pose per wall, one sensor pose per view): the default",
+    )
+    d.add_argument(
+        "--free-poses",
+        action="store_true",
+        help="calibrate with a free pose per wall and view instead of the rigid target box",
     )
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("--views", type=int, default=16, help="catadioptric views (default 16)")

@@ -11,6 +11,8 @@ from .common import fmt, pipe_report, print_placed, print_report, summary, write
 
 
 def run(args) -> int:
+    if args.rigid and args.free_poses:
+        raise ValueError("--rigid and --free-poses: give one of them (the rigid box is the default)")
     from ..calibration.calibrate import (
         cramer_rao,
         laser_errors,
@@ -58,7 +60,7 @@ def run(args) -> int:
         obs = exact
     print(f"[{next(step)}/{steps}] calibrate: staged, then joint (the first run compiles, about a minute)", flush=True)
     t1 = time.perf_counter()
-    rigid = args.rigid
+    rigid = not args.free_poses
     if rigid:
         print("  the box's walls as one rigid box: one pose per wall, one sensor pose per view")
     res, obs, notes = calibrate_detected(obs, rigid=rigid)
