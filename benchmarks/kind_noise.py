@@ -106,7 +106,9 @@ def main() -> None:
     print(json.dumps(summary, indent=1))
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps({"machine": machine(), "seeds": args.seeds, "summary": summary, "rows": rows}, indent=1))
+        Path(args.out).write_text(
+            json.dumps({"machine": machine(), "seeds": args.seeds, "summary": summary, "rows": rows}, indent=1)
+        )
 
 
 if __name__ == "__main__":

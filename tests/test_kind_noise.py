@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from slcvjax.calibration import lm
-from slcvjax.geometry.rig import laser_columns
 from slcvjax.calibration.calibrate import calibrate, covariance_of, kind_noise, kind_sigmas
+from slcvjax.geometry.rig import laser_columns
 from slcvjax.observations.simulate import make_scene, simulate
 
 jax.config.update("jax_enable_x64", True)
@@ -71,7 +71,9 @@ def test_sandwich_covariance_is_the_dense_one():
         s = slice(G + 6 * b, G + 6 * b + 6)
         np.testing.assert_allclose(cov.blocks[b], expected[s, s], rtol=1e-9, atol=1e-12)
     # one noise for every row: sigma^2 H^-1
-    same = lm.sandwich_covariance(lin, jax.tree_util.tree_map(lambda a: 4.0 * a, full), lm.Masks(np.ones(G), np.ones(NB)))
+    same = lm.sandwich_covariance(
+        lin, jax.tree_util.tree_map(lambda a: 4.0 * a, full), lm.Masks(np.ones(G), np.ones(NB))
+    )
     np.testing.assert_allclose(same.glob, 4.0 * Hinv[:G, :G], rtol=1e-9)
 
 
@@ -113,3 +115,39 @@ def test_each_kind_sigma_is_its_noise():
     ratio = np.mean(est, axis=0) / sig
     np.testing.assert_allclose(ratio, 1.0, atol=0.12)
     assert np.mean(med, axis=0)[1] / sig[1] < 0.8
+
+
+@pytest.mark.slow
+def test_per_kind_bound_is_the_weighted_estimators():
+    """``cramer_rao`` with one sigma per kind: ``(sum_k N_k / sigma_k^2)^-1``. With every sigma
+    equal it is ``sigma^2 H^-1``; it scales as the sigmas squared; and by Gauss-Markov it lies
+    below the covariance of the estimator that weighs every kind 1 (``H^-1 (sum_k sigma_k^2 N_k)
+    H^-1``) in the Loewner order."""
+    from slcvjax.calibration.calibrate import _kind_linearisations, cramer_rao
+    from slcvjax.calibration.lm import Params, make_masks, pad_masks, raw_normal, sandwich_covariance
+    from slcvjax.observations.problem import pack, stack_poses
+
+    obs, truth = simulate(make_scene("paper", n_lasers=4, n_views=6))
+
+    def glob(sigma):
+        return np.asarray(cramer_rao(truth, obs, sigma)["cov"].glob)
+
+    one = glob(0.03)
+    np.testing.assert_allclose(glob([0.03] * 4), one, rtol=1e-8, atol=1e-14)
+    sig = np.array([0.02, 0.05, 0.008, 0.03])
+    bound = glob(sig)
+    np.testing.assert_allclose(glob(2 * sig), 4 * bound, rtol=1e-8, atol=1e-14)
+    # the equal-weight estimator's covariance at the truth, from the same linearisations
+    pk = pack(obs)
+    params = Params(truth.rig, stack_poses([truth.board_poses[v][b] for v, b in pk.pose_keys]),
+                    stack_poses(truth.calibration_view_poses))  # fmt: skip
+    masks = make_masks(params)
+    layout, full, parts = _kind_linearisations(params, pk, masks, "huber", 1e9)
+    meat = None
+    for p, s in zip(parts, sig, strict=True):
+        raw = jax.tree_util.tree_map(lambda a, s=s: s**2 * a, raw_normal(p.normal, p.seen_glob, p.seen_blocks))
+        meat = raw if meat is None else jax.tree_util.tree_map(np.add, meat, raw)
+    equal = np.asarray(sandwich_covariance(full, meat, pad_masks(layout, masks)).glob)[: one.shape[0], : one.shape[0]]
+    gap = np.linalg.eigvalsh(equal - bound)
+    assert gap.min() > -1e-9 * np.abs(equal).max()
+    assert np.trace(equal) > 1.01 * np.trace(bound)  # here weighting by the noise gains (3.7 %)

@@ -22,6 +22,7 @@ returns the joint result with its covariance, and the staged result beside it.
 import dataclasses
 import functools
 import time
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -64,12 +65,12 @@ from .lm import (
     block_costs,
     covariance_of_linearisation,
     leverage_share,
-    raw_normal,
-    sandwich_covariance,
     loss_index,
     make_masks,
     pad_masks,
     pad_params,
+    raw_normal,
+    sandwich_covariance,
     solve,
     table_at,
     unpad_params,
@@ -171,12 +172,17 @@ _block_costs_jit = jax.jit(block_costs, static_argnames=("n_blocks",))
 HALF_NORMAL_MEDIAN = 0.6744897501960817  # median of |r| / sigma for 1D Gaussian r
 
 
-def _linearisation(params: Params, pk: Packed, masks: Masks | None = None, loss: str = "huber", scale=1.0):
+def _linearisation(
+    params: Params, pk: Packed, masks: Masks | None = None, loss: str = "huber", scale=1.0, kind_weight=None
+):
     """The padded problem's layout and its :class:`slcvjax.calibration.lm.Linearisation` at ``params`` (the
-    compiled solve with no step)."""
+    compiled solve with no step; ``kind_weight``: each kind's weight, None: all 1)."""
     layout = Layout.of(pk)
     masks = make_masks(params) if masks is None else masks
-    res = _solve(pad_params(layout, params), layout.pad_packed(pk), pad_masks(layout, masks), loss, scale, 0)
+    res = _solve(
+        pad_params(layout, params), layout.pad_packed(pk), pad_masks(layout, masks), loss, scale, 0,
+        kind_weight=kind_weight,
+    )  # fmt: skip
     return layout, res.linearisation
 
 
@@ -200,13 +206,24 @@ def _block_costs(params: Params, pk: Packed, loss: str, scale: float) -> np.ndar
 
 
 def covariance_of(params: Params, pk: Packed, masks: Masks, loss: str, scale, sigma: float | None = None) -> Covariance:
-    """:func:`slcvjax.calibration.lm.covariance_of_linearisation` at ``params`` of the problem ``pk`` (every kind
-    weighted 1), through its shape buckets (the compiled solve with no step linearises): with
-    ``sigma`` given, ``sigma^2 H^-1``; otherwise :func:`covariance_and_noise`'s."""
+    """:func:`slcvjax.calibration.lm.covariance_of_linearisation` at ``params`` of the problem ``pk``,
+    through its shape buckets (the compiled solve with no step linearises): with one ``sigma``
+    given, ``sigma^2 H^-1`` (every kind weighted 1); with one per kind (dot, spot, rim, chess
+    corner), ``(sum_k N_k / sigma_k^2)^-1`` (each kind weighted by its noise: the Cramer-Rao
+    bound where the kinds' noise differ); otherwise :func:`covariance_and_noise`'s."""
     if sigma is None:
         return covariance_and_noise(params, pk, masks, loss, scale)[0]
-    layout, lin = _linearisation(params, pk, masks, loss, scale)
-    cov = _covariance_of_linearisation(lin, pad_masks(layout, masks), jnp.asarray(sigma, dtype=float))
+    sig = np.asarray(sigma, dtype=float)
+    if sig.ndim == 1:
+        if sig.shape != (len(Kind),) or not np.all(np.isfinite(sig) & (sig > 0)):
+            raise ValueError(
+                f"per-kind sigmas: expected {len(Kind)} positive numbers (dot, spot, rim, chess), got {sig}"
+            )
+        layout, lin = _linearisation(params, pk, masks, loss, scale, kind_weight=tuple(1.0 / sig**2))
+        sig = np.asarray(1.0)
+    else:
+        layout, lin = _linearisation(params, pk, masks, loss, scale)
+    cov = _covariance_of_linearisation(lin, pad_masks(layout, masks), jnp.asarray(sig, dtype=float))
     return cov._replace(blocks=layout.unpad_blocks(cov.blocks))
 
 
@@ -230,8 +247,10 @@ def covariance_and_noise(params: Params, pk: Packed, masks: Masks, loss: str, sc
             continue
         raw = _raw_normal_jit(p.normal, p.seen_glob, p.seen_blocks)
         s2 = sig**2 if np.isfinite(sig) else pooled2
-        meat = jax.tree_util.tree_map(lambda a, s2=s2: s2 * a, raw) if meat is None else jax.tree_util.tree_map(
-            lambda m, a, s2=s2: m + s2 * a, meat, raw
+        meat = (
+            jax.tree_util.tree_map(lambda a, s2=s2: s2 * a, raw)
+            if meat is None
+            else jax.tree_util.tree_map(lambda m, a, s2=s2: m + s2 * a, meat, raw)
         )
     cov = _sandwich_jit(full, meat, pad_masks(layout, masks))
     return cov._replace(blocks=layout.unpad_blocks(cov.blocks)), noise
@@ -1694,9 +1713,14 @@ def laser_errors(est: Rig, truth: Rig, x_ref: np.ndarray) -> tuple[np.ndarray, n
 
 
 def cramer_rao(
-    truth: Calibration, obs: Observations, sigma: float, packed: Packed | None = None, rigid: "bool | list[str]" = False
+    truth: Calibration,
+    obs: Observations,
+    sigma: "float | Sequence[float]",
+    packed: Packed | None = None,
+    rigid: "bool | list[str]" = False,
 ) -> dict:
-    """The Cramer-Rao bound of a scene: ``sigma^2 (J^T J)^-1`` at the true parameters.
+    """The Cramer-Rao bound of a scene: ``sigma^2 (J^T J)^-1`` at the true parameters; with
+    ``sigma`` one per kind (dot, spot, rim, chess corner), ``(sum_k N_k / sigma_k^2)^-1``.
 
     Returns the covariance and, per laser, the bound's position std at the working
     point (mm) and direction std (rad), with their RMS over lasers.  ``packed``: the
@@ -1785,7 +1809,10 @@ def report(result: CalibrationResult, obs: Observations) -> dict:
     norm, kind, ok, view, board, laser, index = _obs_table(result)
     sigma = float(result.cov.sigma)
     point = (kind == Kind.DOT) | (kind == Kind.SPOT)
-    outlier = ok & point & (norm > 5.0 * sigma)
+    # beyond 5 sigmas of its own kind (the pooled sigma where the kind has none)
+    own = np.array([result.kind_sigma.get(k.label) for k in Kind], dtype=float)  # None: NaN
+    own = np.where(np.isfinite(own), own, sigma)
+    outlier = ok & point & (norm > 5.0 * own[kind])
     per_view = {obs.views[v].name: _rms(norm[ok & point & (view == v)]) for v in range(len(obs.views))}
     boards = sorted({b for b in board if b})
     per_board = {b: _rms(norm[ok & (kind == Kind.DOT) & (board == b)]) for b in boards}

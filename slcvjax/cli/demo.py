@@ -17,11 +17,11 @@ def run(args) -> int:
         cramer_rao,
         laser_errors,
         reprojections,
-        robust_sigma,
         to_calibration,
     )
     from ..geometry.rig import Rig
     from ..images.centroids import calibrate_detected
+    from ..observations.problem import KIND_NAMES
     from ..observations.simulate import make_scene, simulate
 
     t0 = time.perf_counter()
@@ -70,15 +70,24 @@ def run(args) -> int:
     write_calibration(out / "calibration.json", cal)
     print_report(cal, "calibration")
     print(f"[{next(step)}/{steps}] compare with the truth and the Cramer-Rao bound", flush=True)
-    # the bound at the noise of the points and spots (the detector's, from the residuals, for images)
-    sigma = robust_sigma(res.params, res.packed) if images else max(args.noise, 1e-3)
+    # the bound at the simulated noise, or for images at each kind's noise as the calibration
+    # estimated it (the detector's: spots noisier than dots, the rim's fitted edge far less)
+    if images:
+        pooled = float(res.cov.sigma)
+        sigma = [v if v is not None and np.isfinite(v) else pooled for v in (res.kind_sigma.get(k) for k in KIND_NAMES)]
+    else:
+        sigma = max(args.noise, 1e-3)
     # with the boards the calibration gave the spots detected without one (else they are left out)
     bound = cramer_rao(truth, obs, sigma, packed=res.packed, rigid=rigid)
     pos, ang = laser_errors(res.rig, truth.rig, bound["x_ref"])
     st = res.staged
     pos_s, ang_s = laser_errors(Rig(st.camera, st.mirror, st.lasers), truth.rig, bound["x_ref"])
     unc = cal.extra["uncertainty"]["lasers"]
-    print(f"bound at sigma {sigma:.3f} px" + (" (the dots' and spots' residuals)" if images else ""))
+    if images:
+        each = ", ".join(f"{k} {v:.3g}" for k, v in zip(KIND_NAMES, sigma, strict=True))
+        print(f"bound at each kind's noise as the calibration estimated it ({each} px)")
+    else:
+        print(f"bound at sigma {sigma:.3f} px")
     print("laser  error (mm, deg)    reported std (mm, deg)   bound std (mm, deg)   staged error (mm, deg)")
     for i in range(len(pos)):
         print(
