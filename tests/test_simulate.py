@@ -194,3 +194,38 @@ def test_cli_simulate_bad_arguments(tmp_path, capsys, args, expected):
     assert rc == 2
     assert expected in err and err.count("\n") == 1
     assert not (tmp_path / "x").exists()
+
+
+def test_noise_per_kind():
+    """One sigma per kind (dots, spots, rim, corners): each kind's pixels lie that far from the
+    exact ones; four equal sigmas draw what one does."""
+    scene = make_scene("paper", n_lasers=4, n_views=5)
+    exact, _ = simulate(scene)
+    sig = [0.02, 0.3, 0.0, 0.05]
+    obs, truth = simulate(scene, noise=sig, seed=3)
+    dots = np.concatenate(
+        [
+            px[s] - vx.boards[b][0][s]
+            for v, vx in zip(obs.views, exact.views, strict=True)
+            for b, (px, s) in v.boards.items()
+        ]
+    )
+    spots = np.array([s.pixel - t.pixel for v, vx in zip(obs.views, exact.views, strict=True)
+                      for s, t in zip(v.spots, vx.spots, strict=True)])  # fmt: skip
+    corners = np.concatenate(
+        [
+            c.pixels[c.seen] - e.pixels[c.seen]
+            for c, e in zip(obs.calibration_views, exact.calibration_views, strict=True)
+        ]
+    )
+    for e, s in ((dots, sig[0]), (spots, sig[1]), (corners, sig[3])):
+        assert np.std(e) == pytest.approx(s, rel=0.2)
+    # the rim's angles are drawn at random, so its pixels are compared with the rim's curve
+    assert np.max(sj.distance_to_rim(truth.rig, np.concatenate([v.rim for v in obs.views]))) < 1e-4  # its chords
+    assert truth.extra["simulation"]["noise_px"] == sig
+    one, _ = simulate(scene, noise=0.1, seed=3)
+    four, _ = simulate(scene, noise=[0.1] * 4, seed=3)
+    np.testing.assert_array_equal(one.views[2].spots[0].pixel, four.views[2].spots[0].pixel)
+    np.testing.assert_array_equal(one.views[1].rim, four.views[1].rim)
+    with pytest.raises(ValueError, match="four"):
+        simulate(scene, noise=[0.1, 0.2])

@@ -296,10 +296,16 @@ def _kind_linearisations(params: Params, pk: Packed, masks: Masks, loss: str, sc
     solve weighs them), and one per kind with that kind alone (the compiled solve with no
     step: nothing new compiles)."""
     layout = Layout.of(pk)
-    args = (pad_params(layout, params), layout.pad_packed(pk), pad_masks(layout, masks), loss, scale, 0)
-    full = _solve(*args).linearisation
-    one = np.eye(len(Kind))
-    return layout, full, [_solve(*args, kind_weight=tuple(one[k])).linearisation for k in Kind]
+    padded = layout.pad_packed(pk)
+    p, m = pad_params(layout, params), pad_masks(layout, masks)
+    full = _solve(p, padded, m, loss, scale, 0).linearisation
+    # one kind's rows alone: the others' counted as padding, which the sums skip
+    one = np.eye(len(Kind), dtype=np.asarray(padded.counts).dtype)
+    parts = [
+        _solve(p, eqx.tree_at(lambda a: a.counts, padded, padded.counts * one[k]), m, loss, scale, 0).linearisation
+        for k in Kind
+    ]
+    return layout, full, parts
 
 
 def _noise_of(full, parts) -> KindNoise:
@@ -312,14 +318,18 @@ def _noise_of(full, parts) -> KindNoise:
          for p, r in zip(parts, rows, strict=True)]
     )  # fmt: skip
     free = rows - lev
-    wsq = np.array([float(p.weighted_sq) for p in parts])
+    # the plain squared residuals: under the robust loss a kind noisier than its scale would have
+    # its large residuals down-weighted and its sigma understated (gross outliers are left out
+    # by then)
+    sq = np.asarray(t.sq)
+    wsq = np.array([float(np.sum(sq[real & (kinds == k)])) for k in Kind])
     sigma = np.where(free >= MIN_FREE_ROWS, np.sqrt(wsq / np.maximum(free, 1.0)), np.nan)
     return KindNoise(rows, lev, sigma)
 
 
 def kind_noise(params: Params, pk: Packed, masks: Masks | None = None, loss: str = "huber", scale=1.0) -> KindNoise:
-    """Each kind's noise sigma at the solution ``params``, from its robustly weighted squared
-    residuals over its rows less the parameters they fix (:class:`KindNoise`,
+    """Each kind's noise sigma at the solution ``params``, from its squared residuals over its
+    rows less the parameters they fix (:class:`KindNoise`,
     :func:`slcvjax.calibration.lm.leverage_share`).
 
     Board poses are fixed by their dots and, where a board shows few dots, by its spots; the

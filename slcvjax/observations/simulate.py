@@ -26,6 +26,7 @@ inside the box; twelve direct views of a 9x6, 25 mm chessboard serve the intrins
 every view has rim edge pixels.  Only points that are really visible are written.
 """
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import jax
@@ -249,38 +250,46 @@ def visible_spots(scene: Scene, view: int) -> list[tuple[int, str, np.ndarray, n
     return out
 
 
-def simulate(scene: Scene, noise: float = 0.0, seed: int = 0) -> tuple[Observations, Calibration]:
-    """Observations of a scene with Gaussian pixel noise ``noise`` (px), and the truth.
+def simulate(scene: Scene, noise: "float | Sequence[float]" = 0.0, seed: int = 0) -> tuple[Observations, Calibration]:
+    """Observations of a scene with Gaussian pixel noise ``noise`` (px per axis), and the truth.
 
-    With ``noise = 0`` every pixel is the exact projection of the truth.  Points
-    that are not visible are written as null; a laser's spot is written on the
-    wall its beam meets first, where it is visible through the mirror.
+    ``noise`` is one sigma for every pixel, or one per kind: dots, spots, rim pixels,
+    chessboard corners (as a detector gives them: rendered images make spots' centroids the
+    noisiest and the rim's fitted edge the least noisy).  With ``noise = 0`` every pixel is the
+    exact projection of the truth.  Points that are not visible are written as null; a
+    laser's spot is written on the wall its beam meets first, where it is visible through the
+    mirror.
     """
-    if not np.isfinite(noise) or noise < 0:
-        raise ValueError(f"noise must be a non-negative number of pixels, got {noise}")
+    sig = np.broadcast_to(np.asarray(noise, dtype=float), (4,)) if np.ndim(noise) == 0 else np.asarray(noise, float)
+    if sig.shape != (4,) or not np.all(np.isfinite(sig) & (sig >= 0)):
+        raise ValueError(
+            f"noise must be a non-negative number of pixels, or four (dots, spots, rim, corners), got {noise}"
+        )
     rng = np.random.default_rng(seed)
     rig = scene.rig
     cam = rig.camera
     walls = [b for b in scene.boards if b != scene.chess_board]
+    noise_px = float(sig[0]) if np.ndim(noise) == 0 else sig.tolist()
 
-    def noisy(px):
-        return np.asarray(px, float) + rng.normal(0.0, noise, np.shape(px)) if noise > 0 else np.asarray(px, float)
+    def noisy(px, kind: int):
+        s = sig[kind]
+        return np.asarray(px, float) + rng.normal(0.0, s, np.shape(px)) if s > 0 else np.asarray(px, float)
 
     cal_views = []
     for j, pose in enumerate(scene.chess_poses):
         uv, ok = _proj_direct(cam, pose, jnp.asarray(scene.boards[scene.chess_board]))
-        cal_views.append(CalibrationViewObs(f"chess{j:02d}", scene.chess_board, noisy(uv), np.asarray(ok)))
+        cal_views.append(CalibrationViewObs(f"chess{j:02d}", scene.chess_board, noisy(uv, 3), np.asarray(ok)))
 
     views = []
     for i, poses in enumerate(scene.box_poses):
         per_board = {}
         for b in walls:
             uv, ok = _proj_points(rig, poses[b], jnp.asarray(scene.boards[b]))
-            per_board[b] = (noisy(uv), np.asarray(ok))
-        spots = [SpotObs(laser, wall, noisy(uv)) for laser, wall, _, uv in visible_spots(scene, i)]
+            per_board[b] = (noisy(uv, 0), np.asarray(ok))
+        spots = [SpotObs(laser, wall, noisy(uv, 1)) for laser, wall, _, uv in visible_spots(scene, i)]
         angles = np.sort(rng.uniform(0, 2 * np.pi, scene.rim_points_per_view))
         ruv, rok = _proj_rim(rig, jnp.asarray(angles))
-        rim = noisy(np.asarray(ruv)[np.asarray(rok)])
+        rim = noisy(np.asarray(ruv)[np.asarray(rok)], 2)
         views.append(ViewObs(f"view{i:02d}", per_board, spots, rim))
 
     obs = Observations(
@@ -292,7 +301,7 @@ def simulate(scene: Scene, noise: float = 0.0, seed: int = 0) -> tuple[Observati
         calibration_views=cal_views,
         views=views,
         extra={
-            "simulation": {**scene.info, "noise_px": float(noise), "seed": int(seed)},
+            "simulation": {**scene.info, "noise_px": noise_px, "seed": int(seed)},
             "rigid_boards": list(walls),  # the walls stand still in the box (calibrate(rigid=True))
         },
         mirror_shape=None if isinstance(rig.mirror, ConeMirror) else shape_json(rig.mirror),
@@ -301,7 +310,7 @@ def simulate(scene: Scene, noise: float = 0.0, seed: int = 0) -> tuple[Observati
         rig=rig,
         board_poses=[{b: p[b] for b in walls} for p in scene.box_poses],
         calibration_view_poses=list(scene.chess_poses),
-        extra={"simulation": {**scene.info, "noise_px": float(noise), "seed": int(seed)}},
+        extra={"simulation": {**scene.info, "noise_px": noise_px, "seed": int(seed)}},
     )
     return obs, truth
 
