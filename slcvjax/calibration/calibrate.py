@@ -275,9 +275,9 @@ def _sigmas_of(norm, kind, ok, min_count: int = 10) -> np.ndarray:
     return out
 
 
-_leverage_share_jit = jax.jit(leverage_share)
-_sandwich_jit = jax.jit(sandwich_covariance)
-_raw_normal_jit = jax.jit(raw_normal)
+_leverage_share_jit = PersistentJit(leverage_share, "leverage_share")
+_sandwich_jit = PersistentJit(sandwich_covariance, "sandwich_covariance")
+_raw_normal_jit = PersistentJit(raw_normal, "raw_normal")
 MIN_FREE_ROWS = 20  # a kind whose rows leave fewer free than this takes the pooled sigma
 
 

@@ -77,6 +77,7 @@ def _rays_with_pixel_metric(camera, mirror, uv):
 
 _rays_with_pixel_metric = PersistentJit(map_rows(_rays_with_pixel_metric), "rays_with_pixel_metric")
 _undistort_many = PersistentJit(map_rows(jax.vmap(undistort, in_axes=(None, 0))), "undistort")
+_so3_exp_many = PersistentJit(map_rows(jax.vmap(so3_exp)), "so3_exp")
 
 
 class CalibrationError(ValueError):
@@ -298,7 +299,7 @@ def _flipped(R: np.ndarray, t: np.ndarray, xb: np.ndarray, mask: np.ndarray) -> 
     s = np.linalg.norm(axis, axis=1, keepdims=True)
     ang = np.arctan2(s[:, 0], np.sum(n * n2, axis=1))
     axis = np.where(s > 1e-12, axis / np.maximum(s, 1e-300), 0.0)
-    Q = np.asarray(jax.vmap(so3_exp)(jnp.asarray(axis * ang[:, None]))).reshape(-1, 3, 3)
+    Q = map_padded(_so3_exp_many, rows=axis * ang[:, None]).reshape(-1, 3, 3)
     R2 = Q @ R
     return R2, centre - np.einsum("pij,pj->pi", R2, xbar)
 
