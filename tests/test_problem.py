@@ -143,3 +143,33 @@ def test_padded_problem_solves_as_the_unpadded_one():
     pad = ~np.asarray(t.present)
     assert pad.sum() == sum(c - n for c, n in zip(lp.cap[:4], lp.n[:4], strict=True))
     assert not np.any(np.asarray(t.valid)[pad]) and np.all(np.asarray(t.sq)[pad] == 0.0)
+
+
+@pytest.mark.slow
+def test_a_new_problem_size_compiles_nothing():
+    """After one calibration, a dataset of other sizes in the same buckets (fewer views, other
+    sensor poses: fewer dots, spots, rim pixels and board poses) compiles no program: every
+    function it runs is compiled per bucket, none op by op on its own sizes."""
+    import logging
+
+    from slcvjax.calibration.calibrate import calibrate
+
+    first, _ = simulate(make_scene("paper", n_lasers=7, n_views=11), noise=0.3, seed=5)
+    other, _ = simulate(make_scene("paper", n_lasers=7, n_views=9), noise=0.3, seed=6)
+    calibrate(first)
+    compiled = []
+
+    class Count(logging.Handler):
+        def emit(self, record):
+            if record.getMessage().startswith("Compiling "):
+                compiled.append(record.getMessage()[:120])
+
+    handler, logger = Count(), logging.getLogger("jax")
+    logger.addHandler(handler)
+    try:
+        with jax.log_compiles(True):
+            res = calibrate(other)
+    finally:
+        logger.removeHandler(handler)
+    assert res.passes[-1].converged
+    assert compiled == []

@@ -237,22 +237,20 @@ def covariance_and_noise(params: Params, pk: Packed, masks: Masks, loss: str, sc
     ``sigma^2 H^-1``."""
     layout, full, parts = _kind_linearisations(params, pk, masks, loss, scale)
     noise = _noise_of(full, parts)
-    k = float(jnp.sum(pad_masks(layout, masks).glob * full.seen_glob)) + 6 * float(
-        jnp.sum(pad_masks(layout, masks).blocks * full.seen_blocks)
+    padded = pad_masks(layout, masks)
+    # in NumPy: these arrays' sizes follow the rig (its lasers), which no bucket pads
+    k = float(np.sum(np.asarray(padded.glob) * np.asarray(full.seen_glob))) + 6 * float(
+        np.sum(np.asarray(padded.blocks) * np.asarray(full.seen_blocks))
     )
     pooled2 = float(full.weighted_sq) / max(float(full.n_valid) - k, 1.0)
     meat = None
     for p, sig, n in zip(parts, noise.sigma, noise.rows, strict=True):
         if n == 0:
             continue
-        raw = _raw_normal_jit(p.normal, p.seen_glob, p.seen_blocks)
+        raw = [np.asarray(a) for a in _raw_normal_jit(p.normal, p.seen_glob, p.seen_blocks)]
         s2 = sig**2 if np.isfinite(sig) else pooled2
-        meat = (
-            jax.tree_util.tree_map(lambda a, s2=s2: s2 * a, raw)
-            if meat is None
-            else jax.tree_util.tree_map(lambda m, a, s2=s2: m + s2 * a, meat, raw)
-        )
-    cov = _sandwich_jit(full, meat, pad_masks(layout, masks))
+        meat = [s2 * a for a in raw] if meat is None else [m + s2 * a for m, a in zip(meat, raw, strict=True)]
+    cov = _sandwich_jit(full, type(full.normal)(*meat), padded)
     return cov._replace(blocks=layout.unpad_blocks(cov.blocks)), noise
 
 
