@@ -69,6 +69,7 @@ from .lm import (
     make_masks,
     pad_masks,
     pad_params,
+    pooled_noise,
     raw_normal,
     sandwich_covariance,
     solve,
@@ -235,14 +236,15 @@ def covariance_and_noise(params: Params, pk: Packed, masks: Masks, loss: str, sc
     rim's fitted edge far less noisy), which one pooled sigma would misstate.  A kind with too
     few free rows for its own sigma takes the pooled one.  With one noise for every kind it is
     ``sigma^2 H^-1``."""
-    layout, full, parts = _kind_linearisations(params, pk, masks, loss, scale)
+    return _sandwich_of(*_kind_linearisations(params, pk, masks, loss, scale), masks)
+
+
+def _sandwich_of(layout: Layout, full, parts, masks: Masks) -> "tuple[Covariance, KindNoise]":
+    """:func:`covariance_and_noise` of :func:`_kind_linearisations`' linearisations."""
     noise = _noise_of(full, parts)
     padded = pad_masks(layout, masks)
+    pooled2 = float(_pooled_noise_jit(full, padded)[0])
     # in NumPy: these arrays' sizes follow the rig (its lasers), which no bucket pads
-    k = float(np.sum(np.asarray(padded.glob) * np.asarray(full.seen_glob))) + 6 * float(
-        np.sum(np.asarray(padded.blocks) * np.asarray(full.seen_blocks))
-    )
-    pooled2 = float(full.weighted_sq) / max(float(full.n_valid) - k, 1.0)
     meat = None
     for p, sig, n in zip(parts, noise.sigma, noise.rows, strict=True):
         if n == 0:
@@ -276,6 +278,7 @@ def _sigmas_of(norm, kind, ok, min_count: int = 10) -> np.ndarray:
 _leverage_share_jit = PersistentJit(leverage_share, "leverage_share")
 _sandwich_jit = PersistentJit(sandwich_covariance, "sandwich_covariance")
 _raw_normal_jit = PersistentJit(raw_normal, "raw_normal")
+_pooled_noise_jit = PersistentJit(pooled_noise, "pooled_noise")
 MIN_FREE_ROWS = 20  # a kind whose rows leave fewer free than this takes the pooled sigma
 
 
@@ -1152,12 +1155,12 @@ def _rigid_refine(res: CalibrationResult, obs: Observations, group: list[str], m
         n_s = int(cur.counts[Kind.SPOT])
         cur = cur.select(~np.isin(pose_d, left), ~np.isin(np.asarray(cur.spot_pose)[:n_s], left))
     # linearised again at the solution: the rim rows normalised there, as the free covariance is
-    layout, lin = _linearisation(params, model.packed(cur), masks, res.loss, res.scale)
+    layout, lin, parts = _kind_linearisations(params, model.packed(cur), masks, res.loss, res.scale)
     pooled = _covariance_of_linearisation(lin, pad_masks(layout, masks), None)
     pooled = pooled._replace(blocks=layout.unpad_blocks(pooled.blocks))
     # the rig's covariance with each kind's own noise; the boards' poses (in the box and per
     # view, which need the box's cross covariances) with the pooled sigma
-    cov, noise = covariance_and_noise(params, model.packed(cur), masks, res.loss, res.scale)
+    cov, noise = _sandwich_of(layout, lin, parts, masks)
     pose_cov = board_pose_covariances(model, params, lin, masks, pooled, layout)
     g = res.rig.tangent_dim
     glob = np.asarray(pooled.glob)

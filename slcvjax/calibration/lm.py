@@ -994,15 +994,22 @@ def leverage_share(full: Normal, part: Normal, part_seen_glob, part_seen_blocks)
     return t + jnp.einsum("kig,gh,kjh,kji->", Dinv_Bt, Sinv, Dinv_Bt, D)
 
 
+def pooled_noise(lin: Linearisation, masks: Masks) -> tuple[Array, Array]:
+    """The pooled noise variance ``sum(w r^2) / (n - k)`` over the valid scalar residuals (``n``)
+    and the estimated parameters the weighted rows reach (``k``), and ``n - k``."""
+    k = jnp.sum(masks.glob * lin.seen_glob) + 6 * jnp.sum(masks.blocks * lin.seen_blocks)
+    dof = (lin.n_valid - k).astype(jnp.int64)
+    return lin.weighted_sq / jnp.maximum(dof, 1).astype(float), dof
+
+
 def covariance_of_linearisation(lin: Linearisation, masks: Masks, sigma: float | Array | None = None) -> Covariance:
     """``sigma^2 (J^T W J)^-1`` by the Schur complement; ``sigma`` from the residuals when None.
 
     The residual estimate is ``sum(w r^2) / (n - k)`` over the valid scalar residuals
     (``n``) and the estimated parameters (``k``).  Frozen parameters get zero variance.
     """
-    k = jnp.sum(masks.glob * lin.seen_glob) + 6 * jnp.sum(masks.blocks * lin.seen_blocks)
-    dof = (lin.n_valid - k).astype(jnp.int64)
-    s2 = lin.weighted_sq / jnp.maximum(dof, 1).astype(float) if sigma is None else jnp.asarray(sigma, dtype=float) ** 2
+    pooled, dof = pooled_noise(lin, masks)
+    s2 = pooled if sigma is None else jnp.asarray(sigma, dtype=float) ** 2
     Sinv, Dinv, Dinv_Bt = schur_inverse(lin.normal)
     mg = masks.glob * lin.seen_glob
     cov_g = s2 * Sinv * mg[:, None] * mg[None, :]
@@ -1043,12 +1050,10 @@ def sandwich_covariance(lin: Linearisation, meat: Normal, masks: Masks) -> Covar
         - jnp.swapaxes(cross, 1, 2)
         + jnp.einsum("kij,kjl,klm->kim", Dinv, meat.D, Dinv)
     )
-    k = jnp.sum(masks.glob * lin.seen_glob) + 6 * jnp.sum(masks.blocks * lin.seen_blocks)
-    dof = (lin.n_valid - k).astype(jnp.int64)
+    s2, dof = pooled_noise(lin, masks)
     mg = masks.glob * lin.seen_glob
     cov_g = cov_g * mg[:, None] * mg[None, :]
     cov_p = cov_p * (masks.blocks * lin.seen_blocks)[:, None, None]
-    s2 = lin.weighted_sq / jnp.maximum(dof, 1).astype(float)
     return Covariance(cov_g, cov_p, jnp.sqrt(s2), dof)
 
 
