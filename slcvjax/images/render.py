@@ -213,33 +213,17 @@ def _fine_rays(cam, mirror, body, centres, offsets):
 
 
 @jax.jit
-def _cata_cached(rays, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts):
+def _cata_shade_rays(rays, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts):
+    """Each cell's mean radiance in the box from its samples' reflected rays (:func:`_fine_rays`)."""
     f = lambda o, d, v, s: _cata_shade(o, d, v, s, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts)  # noqa: E731
     return jax.vmap(jax.vmap(f))(*rays).mean(axis=1)
 
 
 @jax.jit
-def _pipe_cached(rays, centre, axis, radius, spots, spot_on, opts):
+def _pipe_shade_rays(rays, centre, axis, radius, spots, spot_on, opts):
+    """Each cell's mean radiance inside a pipe from its samples' reflected rays (:func:`_fine_rays`)."""
     f = lambda o, d, v, s: _pipe_shade(o, d, v, s, centre, axis, radius, spots, spot_on, opts)  # noqa: E731
     return jax.vmap(jax.vmap(f))(*rays).mean(axis=1)
-
-
-@jax.jit
-def _cata_fine(cam, mirror, body, centres, offsets, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts):
-    def f(uv):
-        o, d, v, s = _cata_ray(cam, mirror, uv, body[0], body[1])
-        return _cata_shade(o, d, v, s, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts)
-
-    return _cell_means(f, centres, offsets)
-
-
-@jax.jit
-def _pipe_fine(cam, mirror, body, centres, offsets, centre, axis, radius, spots, spot_on, opts):
-    def f(uv):
-        o, d, v, s = _cata_ray(cam, mirror, uv, body[0], body[1])
-        return _pipe_shade(o, d, v, s, centre, axis, radius, spots, spot_on, opts)
-
-    return _cell_means(f, centres, offsets)
 
 
 @jax.jit
@@ -336,6 +320,11 @@ class Renderer:
         centres[:n, 0], centres[:n, 1] = (xs + 0.5) / ss - 0.5, (ys + 0.5) / ss - 0.5
         return [jnp.asarray(centres[i : i + REFINE_CELLS]) for i in range(0, n, REFINE_CELLS)]
 
+    def _traced(self, shade):
+        """``fine(centres, offsets)`` for :meth:`_cells`: the samples' reflected rays traced, then
+        ``shade(rays) -> (m, 3)``."""
+        return lambda centres, offsets: shade(_fine_rays(self.camera, self.mirror, self._body, centres, offsets))
+
     def _cells(self, out, fine, cached=None) -> np.ndarray:
         """The image at its samples' resolution (H ss, W ss, 3): each sample stands for the mean
         radiance over its cell, ``1/ss`` px square. A cell an edge crosses (it or a neighbour differs
@@ -398,8 +387,8 @@ class Renderer:
         scene = (walls_R, walls_t, jnp.asarray(dots), jnp.asarray(spot_xyz), jnp.asarray(spot_wall),
                  jnp.asarray(spot_wall >= 0), opts)  # fmt: skip
         out = _cata_band(self._rays, *scene)
-        fine = lambda px, off: _cata_fine(self.camera, self.mirror, self._body, px, off, *scene)  # noqa: E731
-        return _finish(self._cells(out, fine, lambda rays: _cata_cached(rays, *scene)), o, seed)
+        shade = lambda rays: _cata_shade_rays(rays, *scene)  # noqa: E731
+        return _finish(self._cells(out, self._traced(shade), shade), o, seed)
 
     def pipe(self, centre, axis, radius: float, spots: np.ndarray, seed: int = 0) -> np.ndarray:
         """One catadioptric image from inside a straight pipe (BGR uint8): the pipe's axis through
@@ -415,8 +404,8 @@ class Renderer:
         scene = (jnp.asarray(centre, float), jnp.asarray(axis, float), jnp.asarray(float(radius)),
                  jnp.asarray(spot_xyz), jnp.arange(len(spot_xyz)) < len(spots), opts)  # fmt: skip
         out = _pipe_band(self._rays, *scene)
-        fine = lambda px, off: _pipe_fine(self.camera, self.mirror, self._body, px, off, *scene)  # noqa: E731
-        return _finish(self._cells(out, fine, lambda rays: _pipe_cached(rays, *scene)), o, seed)
+        shade = lambda rays: _pipe_shade_rays(rays, *scene)  # noqa: E731
+        return _finish(self._cells(out, self._traced(shade), shade), o, seed)
 
     def chessboard(self, T_cam_board: Pose, cols: int, rows: int, square: float, seed: int = 0) -> np.ndarray:
         """One direct chessboard image (BGR uint8): ``cols x rows`` inner corners at ``(i, j) * square``, mm."""
