@@ -39,7 +39,9 @@ def test_demo_runs_end_to_end_from_images(tmp_path, capsys):
 
 
 def test_demo_refuses_both_pose_models(tmp_path, capsys):
-    assert cli.main(["demo", "--rigid", "--free-poses", "--out", str(tmp_path / "d")]) == 2
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["demo", "--rigid", "--free-poses", "--out", str(tmp_path / "d")])
+    assert exit_.value.code == 2
     assert "--free-poses" in capsys.readouterr().err
     assert not (tmp_path / "d").exists()
 

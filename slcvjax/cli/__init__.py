@@ -206,12 +206,13 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument(
         "--no-images", action="store_true", help="calibrate the simulated observations directly (no render or detect)"
     )
-    d.add_argument(
+    poses = d.add_mutually_exclusive_group()
+    poses.add_argument(
         "--rigid",
         action="store_true",
         help="calibrate with the rigid target box model (one pose per wall, one sensor pose per view): the default",
     )
-    d.add_argument(
+    poses.add_argument(
         "--free-poses",
         action="store_true",
         help="calibrate with a free pose per wall and view instead of the rigid target box",

@@ -11,8 +11,6 @@ from .common import fmt, pipe_report, print_placed, print_report, summary, write
 
 
 def run(args) -> int:
-    if args.rigid and args.free_poses:
-        raise ValueError("--rigid and --free-poses: give one of them (the rigid box is the default)")
     from ..calibration.calibrate import (
         cramer_rao,
         laser_errors,
