@@ -1011,11 +1011,16 @@ def covariance_of_linearisation(lin: Linearisation, masks: Masks, sigma: float |
     pooled, dof = pooled_noise(lin, masks)
     s2 = pooled if sigma is None else jnp.asarray(sigma, dtype=float) ** 2
     Sinv, Dinv, Dinv_Bt = schur_inverse(lin.normal)
-    mg = masks.glob * lin.seen_glob
-    cov_g = s2 * Sinv * mg[:, None] * mg[None, :]
     cov_p = s2 * (Dinv + jnp.einsum("kig,gh,kjh->kij", Dinv_Bt, Sinv, Dinv_Bt))
-    cov_p = cov_p * (masks.blocks * lin.seen_blocks)[:, None, None]
-    return Covariance(cov_g, cov_p, jnp.sqrt(s2), dof)
+    return _estimated_only(lin, masks, Covariance(s2 * Sinv, cov_p, jnp.sqrt(s2), dof))
+
+
+def _estimated_only(lin: Linearisation, masks: Masks, cov: Covariance) -> Covariance:
+    """``cov`` with zero (co)variance for the frozen parameters and those no weighted row reaches."""
+    mg = masks.glob * lin.seen_glob
+    return cov._replace(
+        glob=cov.glob * mg[:, None] * mg[None, :], blocks=cov.blocks * (masks.blocks * lin.seen_blocks)[:, None, None]
+    )
 
 
 def raw_normal(part: Normal, seen_glob, seen_blocks) -> Normal:
@@ -1051,10 +1056,7 @@ def sandwich_covariance(lin: Linearisation, meat: Normal, masks: Masks) -> Covar
         + jnp.einsum("kij,kjl,klm->kim", Dinv, meat.D, Dinv)
     )
     s2, dof = pooled_noise(lin, masks)
-    mg = masks.glob * lin.seen_glob
-    cov_g = cov_g * mg[:, None] * mg[None, :]
-    cov_p = cov_p * (masks.blocks * lin.seen_blocks)[:, None, None]
-    return Covariance(cov_g, cov_p, jnp.sqrt(s2), dof)
+    return _estimated_only(lin, masks, Covariance(cov_g, cov_p, jnp.sqrt(s2), dof))
 
 
 def residual_rows(params: Params, pk: Packed) -> Rows:

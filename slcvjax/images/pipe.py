@@ -346,7 +346,8 @@ def measurement_inputs(path, cal) -> tuple[float | None, np.ndarray | None]:
     if cal.rig.mirror is None or cal.rig.lasers.n == 0:
         raise FormatError(f"{path}: mirror, lasers: a camera-only calibration cannot measure laser spots")
     res = cal.extra.get("residuals") or {}
-    spot = (res.get("by_kind_sigma_px") or {}).get("spot") if isinstance(res.get("by_kind_sigma_px"), dict) else None
+    by_kind = res.get("by_kind_sigma_px")
+    spot = by_kind.get("spot") if isinstance(by_kind, dict) else None
     sigma = spot if spot is not None else res.get("sigma_px")
     field = "by_kind_sigma_px.spot" if spot is not None else "sigma_px"
     if sigma is None and res.get("rms_px") is not None:
