@@ -52,6 +52,20 @@ def test_leverage_share_is_the_trace_of_the_hat_matrix():
     assert float(share + rest) == pytest.approx(G + 6 * NB, rel=1e-10)
 
 
+def test_leverage_shares_of_stacked_parts_are_each_parts_trace():
+    rng = np.random.default_rng(2)
+    jg, jp, block, dense = _schur_problem(rng)
+    full = _normal(jg, jp, block, np.ones(len(jg), bool))
+    hat = dense @ np.linalg.solve(dense.T @ dense, dense.T)
+    which = rng.integers(0, 3, len(jg))
+    parts = [_normal(jg, jp, block, which == k) for k in range(3)]
+    stacked = jax.tree_util.tree_map(lambda *a: np.stack(a), *parts)
+    shares = lm.leverage_shares(full, stacked, np.ones((3, G)), np.ones((3, NB)))
+    for k in range(3):
+        sel = which == k
+        assert float(shares[k]) == pytest.approx(np.trace(hat[np.ix_(sel, sel)]), rel=1e-10)
+
+
 def test_sandwich_covariance_is_the_dense_one():
     rng = np.random.default_rng(1)
     jg, jp, block, dense = _schur_problem(rng)

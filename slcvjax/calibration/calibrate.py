@@ -64,7 +64,7 @@ from .lm import (
     Params,
     block_costs,
     covariance_of_linearisation,
-    leverage_share,
+    leverage_shares,
     loss_index,
     make_masks,
     pad_masks,
@@ -275,7 +275,7 @@ def _sigmas_of(norm, kind, ok, min_count: int = 10) -> np.ndarray:
     return out
 
 
-_leverage_share_jit = PersistentJit(leverage_share, "leverage_share")
+_leverage_shares_jit = PersistentJit(leverage_shares, "leverage_shares")
 _sandwich_jit = PersistentJit(sandwich_covariance, "sandwich_covariance")
 _raw_normal_jit = PersistentJit(raw_normal, "raw_normal")
 _pooled_noise_jit = PersistentJit(pooled_noise, "pooled_noise")
@@ -314,10 +314,9 @@ def _noise_of(full, parts) -> KindNoise:
     real = np.asarray(t.valid) & np.asarray(t.present)
     kinds = np.asarray(t.kind)
     rows = np.array([(1.0 if k == Kind.RIM else 2.0) * np.sum(real & (kinds == k)) for k in Kind])
-    lev = np.array(
-        [float(_leverage_share_jit(full.normal, p.normal, p.seen_glob, p.seen_blocks)) if r else 0.0
-         for p, r in zip(parts, rows, strict=True)]
-    )  # fmt: skip
+    # every kind's share in one call (H^-1 once); a kind without rows fixes nothing
+    stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *((p.normal, p.seen_glob, p.seen_blocks) for p in parts))
+    lev = np.where(rows > 0, np.asarray(_leverage_shares_jit(full.normal, *stacked)), 0.0)
     free = rows - lev
     # the plain squared residuals: under the robust loss a kind noisier than its scale would have
     # its large residuals down-weighted and its sigma understated (gross outliers are left out

@@ -984,7 +984,18 @@ def leverage_share(full: Normal, part: Normal, part_seen_glob, part_seen_blocks)
     than their noise by that many squared sigmas.  Over a partition of all the rows the
     shares add up to the number of estimated parameters.  ``finish_normal``'s unit diagonals
     of what ``part`` does not reach are taken off first."""
-    Sinv, Dinv, Dinv_Bt = schur_inverse(full)
+    return _share(schur_inverse(full), part, part_seen_glob, part_seen_blocks)
+
+
+def leverage_shares(full: Normal, parts: Normal, parts_seen_glob, parts_seen_blocks) -> Array:
+    """:func:`leverage_share` of each of several parts (their arrays stacked on a leading
+    axis), ``H^-1`` taken once."""
+    inv = schur_inverse(full)
+    return jax.vmap(lambda p, g, b: _share(inv, p, g, b))(parts, parts_seen_glob, parts_seen_blocks)
+
+
+def _share(inv, part: Normal, part_seen_glob, part_seen_blocks) -> Array:
+    Sinv, Dinv, Dinv_Bt = inv
     raw = raw_normal(part, part_seen_glob, part_seen_blocks)
     A, D = raw.A, raw.D
     # the blocks of H^-1: S^-1; -S^-1 (D_k^-1 B_k^T)^T; D_k^-1 + D_k^-1 B_k^T S^-1 B_k D_k^-1
