@@ -42,11 +42,12 @@ def _dense(lin, layout, n_global: int) -> tuple[np.ndarray, np.ndarray]:
     """``(H, b)`` of a linearisation over its real unknowns: global, board pose blocks, direct views."""
     ne = lin.normal
     blocks = list(range(layout.n[4])) + [layout.cap[4] + i for i in range(layout.n[5])]
-    A = np.asarray(ne.A)[:n_global, :n_global]
-    B = np.concatenate([np.asarray(ne.B)[k, :n_global] for k in blocks], axis=1)
+    # the padded lasers' columns (held, with no spot) cut from the global block
+    A = layout.unpad_glob(ne.A, axes=(0, 1))[:n_global, :n_global]
+    B = np.concatenate([layout.unpad_glob(np.asarray(ne.B)[k])[:n_global] for k in blocks], axis=1)
     D = jax.scipy.linalg.block_diag(*[np.asarray(ne.D)[k] for k in blocks])
     H = np.block([[A, B], [B.T, np.asarray(D)]])
-    b = np.concatenate([np.asarray(ne.bg)[:n_global]] + [np.asarray(ne.bp)[k] for k in blocks])
+    b = np.concatenate([layout.unpad_glob(ne.bg)[:n_global]] + [np.asarray(ne.bp)[k] for k in blocks])
     return H, b
 
 

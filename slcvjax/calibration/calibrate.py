@@ -178,7 +178,7 @@ def _linearisation(
 ):
     """The padded problem's layout and its :class:`slcvjax.calibration.lm.Linearisation` at ``params`` (the
     compiled solve with no step; ``kind_weight``: each kind's weight, None: all 1)."""
-    layout = Layout.of(pk)
+    layout = Layout.of(pk, n_lasers=params.rig.lasers.n)
     masks = make_masks(params) if masks is None else masks
     res = _solve(
         pad_params(layout, params), layout.pad_packed(pk), pad_masks(layout, masks), loss, scale, 0,
@@ -189,7 +189,7 @@ def _linearisation(
 
 def _table(params: Params, pk: Packed):
     """The padded problem's layout and its :class:`slcvjax.calibration.lm.ObservationTable` at ``params``."""
-    layout = Layout.of(pk)
+    layout = Layout.of(pk, n_lasers=params.rig.lasers.n)
     return layout, _table_jit(pad_params(layout, params), layout.pad_packed(pk))
 
 
@@ -225,7 +225,12 @@ def covariance_of(params: Params, pk: Packed, masks: Masks, loss: str, scale, si
     else:
         layout, lin = _linearisation(params, pk, masks, loss, scale)
     cov = _covariance_of_linearisation(lin, pad_masks(layout, masks), jnp.asarray(sig, dtype=float))
-    return cov._replace(blocks=layout.unpad_blocks(cov.blocks))
+    return _unpad_covariance(layout, cov)
+
+
+def _unpad_covariance(layout: Layout, cov: Covariance) -> Covariance:
+    """A covariance of the padded problem restricted to the real lasers and pose blocks."""
+    return cov._replace(glob=layout.unpad_glob(cov.glob, (0, 1)), blocks=layout.unpad_blocks(cov.blocks))
 
 
 def covariance_and_noise(params: Params, pk: Packed, masks: Masks, loss: str, scale) -> "tuple[Covariance, KindNoise]":
@@ -244,7 +249,6 @@ def _sandwich_of(layout: Layout, full, parts, masks: Masks) -> "tuple[Covariance
     noise = _noise_of(full, parts)
     padded = pad_masks(layout, masks)
     pooled2 = float(_pooled_noise_jit(full, padded)[0])
-    # in NumPy: these arrays' sizes follow the rig (its lasers), which no bucket pads
     meat = None
     for p, sig, n in zip(parts, noise.sigma, noise.rows, strict=True):
         if n == 0:
@@ -253,7 +257,7 @@ def _sandwich_of(layout: Layout, full, parts, masks: Masks) -> "tuple[Covariance
         s2 = sig**2 if np.isfinite(sig) else pooled2
         meat = [s2 * a for a in raw] if meat is None else [m + s2 * a for m, a in zip(meat, raw, strict=True)]
     cov = _sandwich_jit(full, type(full.normal)(*meat), padded)
-    return cov._replace(blocks=layout.unpad_blocks(cov.blocks)), noise
+    return _unpad_covariance(layout, cov), noise
 
 
 def kind_sigmas(params: Params, pk: Packed, min_count: int = 10) -> np.ndarray:
@@ -296,7 +300,7 @@ def _kind_linearisations(params: Params, pk: Packed, masks: Masks, loss: str, sc
     """The padded layout, the linearisation at ``params`` with every kind weighted 1 (as the
     solve weighs them), and one per kind with that kind alone (the compiled solve with no
     step: nothing new compiles)."""
-    layout = Layout.of(pk)
+    layout = Layout.of(pk, n_lasers=params.rig.lasers.n)
     padded = layout.pad_packed(pk)
     p, m = pad_params(layout, params), pad_masks(layout, masks)
     full = _solve(p, padded, m, loss, scale, 0).linearisation
@@ -825,7 +829,7 @@ class _Trial:
     def use(self, pk: Packed) -> None:
         """Solve the problem ``pk`` from now on (the same poses; fewer or relabelled observations)."""
         self.pk = pk
-        self.layout = Layout.of(pk, fine=self.fine)
+        self.layout = Layout.of(pk, fine=self.fine, n_lasers=self.params.rig.lasers.n)
         self.arr = self.layout.pad_packed(pk)
 
 
@@ -1091,7 +1095,7 @@ def _rigid_refine(res: CalibrationResult, obs: Observations, group: list[str], m
     reexamined, restored_names, misfit_rounds = False, [], 0
     while True:
         pr = model.packed(cur)
-        layout = Layout.of(pr)
+        layout = Layout.of(pr, n_lasers=params.rig.lasers.n)
         out = _solve(
             pad_params(layout, params),
             layout.pad_packed(pr),
@@ -1156,7 +1160,7 @@ def _rigid_refine(res: CalibrationResult, obs: Observations, group: list[str], m
     # linearised again at the solution: the rim rows normalised there, as the free covariance is
     layout, lin, parts = _kind_linearisations(params, model.packed(cur), masks, res.loss, res.scale)
     pooled = _covariance_of_linearisation(lin, pad_masks(layout, masks), None)
-    pooled = pooled._replace(blocks=layout.unpad_blocks(pooled.blocks))
+    pooled = _unpad_covariance(layout, pooled)
     # the rig's covariance with each kind's own noise; the boards' poses (in the box and per
     # view, which need the box's cross covariances) with the pooled sigma
     cov, noise = _sandwich_of(layout, lin, parts, masks)

@@ -794,20 +794,25 @@ def make_masks(params: Params, freeze: frozenset | set | tuple = (), estimate: f
 
 
 def pad_params(layout: Layout, params: Params) -> Params:
-    """``params`` with its board and direct-view poses padded to ``layout``'s bucket sizes (the
-    box poses as they are: :mod:`slcvjax.calibration.rigid` pads them)."""
-    return Params(params.rig, layout.pad_poses(params.poses), layout.pad_poses(params.chess, chess=True), params.box)
+    """``params`` with its board and direct-view poses and its lasers padded to ``layout``'s
+    bucket sizes (the box poses as they are: :mod:`slcvjax.calibration.rigid` pads them)."""
+    rig = params.rig
+    rig = Rig(rig.camera, rig.mirror, layout.pad_lasers(rig.lasers))
+    return Params(rig, layout.pad_poses(params.poses), layout.pad_poses(params.chess, chess=True), params.box)
 
 
 def unpad_params(layout: Layout, params: Params) -> Params:
-    """The real poses of padded ``params`` (host arrays; the box poses all kept)."""
+    """The real poses and lasers of padded ``params`` (host arrays; the box poses all kept)."""
     box = None if params.box is None else Pose(np.asarray(params.box.R), np.asarray(params.box.t))
-    return Params(params.rig, layout.unpad_poses(params.poses), layout.unpad_poses(params.chess, chess=True), box)
+    rig = Rig(params.rig.camera, params.rig.mirror, layout.unpad_lasers(params.rig.lasers))
+    return Params(rig, layout.unpad_poses(params.poses), layout.unpad_poses(params.chess, chess=True), box)
 
 
 def pad_masks(layout: Layout, masks: Masks) -> Masks:
-    """``masks`` over padded pose blocks: a padded block is frozen (and has no observation)."""
-    return Masks(masks.glob, jnp.asarray(layout.pad_blocks(masks.blocks), dtype=float))
+    """``masks`` over padded lasers and pose blocks: a padded laser or block is frozen (and has no observation)."""
+    return Masks(
+        jnp.asarray(layout.pad_glob(masks.glob), dtype=float), jnp.asarray(layout.pad_blocks(masks.blocks), dtype=float)
+    )
 
 
 class Linearisation(NamedTuple):

@@ -223,9 +223,10 @@ def board_pose_covariances(model: BoxModel, params: Params, lin, masks: Masks, c
     """
     s2 = float(cov.sigma) ** 2
     Sinv, _, Dinv_Bt = (np.asarray(x) for x in schur_inverse(lin.normal))
+    Sinv, Dinv_Bt = layout.unpad_glob(Sinv, (0, 1)), layout.unpad_glob(Dinv_Bt, (2,))  # the real lasers' columns
     g_rig = params.rig.tangent_dim
     pmask = np.asarray(pad_masks(layout, masks).blocks) * np.asarray(lin.seen_blocks)
-    gmask = np.asarray(masks.glob) * np.asarray(lin.seen_glob)
+    gmask = np.asarray(masks.glob) * layout.unpad_glob(lin.seen_glob)
     blocks_cov = np.asarray(cov.blocks)  # real blocks (unpadded): view blocks, outside, chess
     R, bt = np.asarray(params.poses.R), np.asarray(params.box.t) if params.n_box else None
     out = np.zeros((model.pair_block.size, 6, 6))

@@ -3,6 +3,7 @@
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from ..support.safe import orthonormal_basis, safe_div, safe_normalize
@@ -54,10 +55,12 @@ class Lasers(eqx.Module):
         return p + jnp.dot(x_ref - p, d) * d, d
 
     def canonical(self) -> "Lasers":
-        """The same lines with each point moved to the foot of the perpendicular from the origin."""
-        d = self.directions
-        p = self.points - jnp.sum(self.points * d, axis=-1, keepdims=True) * d
-        return Lasers(p, d)
+        """The same lines with each point moved to the foot of the perpendicular from the origin.
+
+        Computed on the host (concrete arrays only), so a new number of lasers compiles nothing."""
+        d = np.asarray(self.directions)
+        p = np.asarray(self.points)
+        return Lasers(jax.device_put(p - np.sum(p * d, axis=-1, keepdims=True) * d), self.directions)
 
 
 def line_plane_intersection(

@@ -26,10 +26,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ..geometry.lasers import line_plane_intersection
+from ..geometry.lasers import Lasers, line_plane_intersection
 from ..geometry.mirror import project_through_mirror
 from ..geometry.pose import Pose
-from ..geometry.rig import Rig
+from ..geometry.rig import CAMERA_DOF, LASER_DOF, MIRROR_DOF, Rig
 from .formats import Observations
 
 
@@ -230,6 +230,9 @@ MIN_BUCKET = 8
 # the joint problem's ladders (see :meth:`Layout.of`): (floor, step) of observation rows and of pose blocks
 OBSERVATION_LADDER = (4096, 4)
 POSE_LADDER = (64, 4)
+# the lasers' ladder: every rig of 1 to 8 lasers shares the joint problem's compilations (a
+# padded laser has no spot and is held, and its 4 columns only widen the dense global block)
+LASER_LADDER = (8, 2)
 
 
 def bucket(n: int, floor: int = MIN_BUCKET, step: int = 2) -> int:
@@ -266,6 +269,16 @@ def pad_rows(x, size: int, fill=None) -> np.ndarray:
     return np.concatenate([x, np.broadcast_to(row, (size - n,) + x.shape[1:])])
 
 
+def padded_lasers(lasers: Lasers, cap: int | None = None) -> Lasers:
+    """``lasers`` padded to ``cap`` lines (by default their :data:`LASER_LADDER` bucket) with
+    copies of the first: a function of the rig compiled once serves every laser count of a
+    bucket, and the padded lines' outputs are cut off by the caller."""
+    cap = bucket(lasers.n, *LASER_LADDER) if cap is None else cap
+    if cap == lasers.n:
+        return lasers
+    return Lasers(jax.device_put(pad_rows(lasers.points, cap)), jax.device_put(pad_rows(lasers.directions, cap)))
+
+
 def map_rows(vfn, chunk: int = 256):
     """``vfn(*consts, rows)`` (a map over the rows' first axis) as ``f(*consts, rows, count)``
     that evaluates only the first ``count`` rows, in a loop over chunks of ``chunk`` (the rest
@@ -300,13 +313,21 @@ def map_padded(fn, *args, rows):
 
 
 class Layout(NamedTuple):
-    """The real and padded sizes of a problem: dots, spots, rim pixels, corners, board poses, direct-view poses."""
+    """The real and padded sizes of a problem: dots, spots, rim pixels, corners, board poses,
+    direct-view poses, and (``lasers``: real, padded) the rig's lasers (None: not padded)."""
 
     n: tuple[int, int, int, int, int, int]
     cap: tuple[int, int, int, int, int, int]
+    lasers: tuple[int, int] | None = None
 
     @staticmethod
-    def of(pk: "Packed", n_poses: int | None = None, n_chess: int | None = None, fine: bool = False) -> "Layout":
+    def of(
+        pk: "Packed",
+        n_poses: int | None = None,
+        n_chess: int | None = None,
+        fine: bool = False,
+        n_lasers: int | None = None,
+    ) -> "Layout":
         """The layout of ``pk`` (its real rows) with every size rounded up by :func:`bucket`.
 
         The joint problem's ladders are coarse (:data:`OBSERVATION_LADDER`: 4096 rows, then
@@ -317,7 +338,8 @@ class Layout(NamedTuple):
 
         ``n_poses`` / ``n_chess``: the number of board / direct-view poses (by default
         those of ``pk``'s keys).  ``fine``: powers of two instead, for solves that visit
-        every row, padding included (trials in lockstep under ``vmap``).
+        every row, padding included (trials in lockstep under ``vmap``).  ``n_lasers``: the
+        rig's lasers, padded by :data:`LASER_LADDER` (None: the lasers as they are).
         """
         c = np.asarray(pk.counts)
         n = (
@@ -329,7 +351,45 @@ class Layout(NamedTuple):
             pk.n_chess if n_chess is None else n_chess,
         )
         obs, poses = ((MIN_BUCKET, 2),) * 2 if fine else (OBSERVATION_LADDER, POSE_LADDER)
-        return Layout(n, tuple(bucket(k, *(obs if i < 4 else poses)) for i, k in enumerate(n)))  # type: ignore[arg-type]
+        cap = tuple(bucket(k, *(obs if i < 4 else poses)) for i, k in enumerate(n))
+        lasers = None if n_lasers is None else (n_lasers, bucket(n_lasers, *LASER_LADDER))
+        return Layout(n, cap, lasers)  # type: ignore[arg-type]
+
+    def _laser_gap(self) -> tuple[int, int]:
+        """Where the padded lasers' columns start in the padded global block, and how many there are."""
+        if self.lasers is None:
+            return 0, 0
+        n, cap = self.lasers
+        return CAMERA_DOF + MIRROR_DOF + LASER_DOF * n, LASER_DOF * (cap - n)
+
+    def pad_lasers(self, lasers: Lasers) -> Lasers:
+        """The rig's lasers padded with copies of the first (held, with no spot: see :func:`pad_glob`)."""
+        return lasers if self.lasers is None else padded_lasers(lasers, self.lasers[1])
+
+    def unpad_lasers(self, lasers: Lasers) -> Lasers:
+        """The real lasers of padded ones (host arrays)."""
+        if self.lasers is None:
+            return lasers
+        n = self.lasers[0]
+        return Lasers(np.asarray(lasers.points)[:n], np.asarray(lasers.directions)[:n])
+
+    def pad_glob(self, x, fill=0.0) -> np.ndarray:
+        """A global-block vector (camera, mirror, lasers, box poses) with the padded lasers'
+        columns inserted (``fill``)."""
+        x = np.asarray(x)
+        at, k = self._laser_gap()
+        return np.concatenate([x[:at], np.full(k, fill, x.dtype), x[at:]]) if k else x
+
+    def unpad_glob(self, x, axes: tuple[int, ...] = (0,)) -> np.ndarray:
+        """A padded global-block array with the padded lasers' rows cut from each of ``axes``."""
+        x = np.asarray(x)
+        at, k = self._laser_gap()
+        if not k:
+            return x
+        for ax in axes:
+            keep = np.r_[:at, at + k : x.shape[ax]]
+            x = np.take(x, keep, axis=ax)
+        return x
 
     def pad_packed(self, pk: "Packed") -> "Packed":
         """``pk``'s arrays padded to the layout's sizes, without the static keys (which would
