@@ -9,7 +9,14 @@ import pytest
 
 from slcvjax import Lasers, Rig, cli
 from slcvjax.images.pipe import measure_observations, pipe_experiment, pipe_scene, simulate_pipe, view_circle
-from slcvjax.measurement.measure import fit_circle, fit_circle_3d, plane_basis, triangulate_spot, triangulate_spots
+from slcvjax.measurement.measure import (
+    fit_circle,
+    fit_circle_3d,
+    measure_spots,
+    plane_basis,
+    triangulate_spot,
+    triangulate_spots,
+)
 from slcvjax.observations.formats import Calibration, write_calibration, write_observations
 from slcvjax.observations.simulate import paper_rig
 
@@ -270,3 +277,43 @@ def test_the_pipe_is_measured_through_other_mirrors(mirror_kind):
     assert s["points"] == 160 and s["nearly_parallel"] == 0 and s["off_line"] == 0, s
     assert 0.7 < s["point_error_over_std_all"] < 1.25, s
     assert s["diameters_within_two_std"] >= 14, s
+
+
+def _pipe_spots(rig, seed):
+    """Laser indices, pixels and view indices of two simulated pipe views."""
+    obs, _ = simulate_pipe(pipe_scene(rig, 140.0, n_poses=2, seed=seed), noise=0.3, seed=seed)
+    spots = [(v, s) for v, view in enumerate(obs.views) for s in view.spots]
+    return np.array([s.laser for _, s in spots]), np.array([s.pixel for _, s in spots]), np.array([v for v, _ in spots])
+
+
+def _measure_and_fit(rig, spots):
+    views = measure_spots(rig, *spots, 2, 0.3, np.eye(rig.tangent_dim) * 1e-6)
+    return views, [fit_circle_3d(vp.xyz, vp.cov) for vp in views]
+
+
+def test_measuring_a_new_number_of_spots_and_lasers_compiles_nothing():
+    """After one measurement, spots of another count from a rig of another laser count in the
+    same bucket are triangulated, with their Jacobians and circle fits, by the same programs."""
+    import logging
+
+    rig7, rig5 = paper_rig(7), paper_rig(5)
+    first, other = _pipe_spots(rig7, 1), _pipe_spots(rig5, 2)
+    assert len(first[0]) != len(other[0])
+    _measure_and_fit(rig7, first)
+    compiled = []
+
+    class Count(logging.Handler):
+        def emit(self, record):
+            if record.getMessage().startswith("Compiling "):
+                compiled.append(record.getMessage()[:120])
+
+    handler, logger = Count(), logging.getLogger("jax")
+    logger.addHandler(handler)
+    try:
+        with jax.log_compiles(True):
+            views, circles = _measure_and_fit(rig5, other)
+    finally:
+        logger.removeHandler(handler)
+    assert compiled == []
+    assert sum(len(vp.xyz) for vp in views) == len(other[0])
+    assert all(c.diameter_std > 0 for c in circles)

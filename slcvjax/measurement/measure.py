@@ -41,7 +41,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ..geometry.mirror import back_project, project_through_mirror
 from ..geometry.rig import Rig, laser_columns
-from ..observations.problem import map_padded, map_rows
+from ..observations.problem import bucket, map_padded, map_rows, pad_rows, padded_lasers
 from ..support.persist import PersistentJit
 from ..support.safe import orthonormal_basis, safe_arccos, safe_div, safe_norm, std_of_variance
 
@@ -106,6 +106,13 @@ _gaps_to_every_laser_jit = PersistentJit(map_rows(_gaps_to_every_laser), "gaps_t
 
 def _triangulate(rig: Rig, lasers, uv) -> SpotPoints:
     return jax.vmap(triangulate_spot, in_axes=(None, 0, 0))(rig, lasers, uv)
+
+
+def _bucketed(rig: Rig) -> Rig:
+    """``rig`` with its lasers padded to their bucket (:func:`padded_lasers`), for the compiled
+    maps below: one compilation serves every laser count of a bucket.  The padded lines come
+    after the real ones, so a spot's laser index and the rig's tangent columns keep their place."""
+    return Rig(rig.camera, rig.mirror, padded_lasers(rig.lasers))
 
 
 _HERMITE = np.polynomial.hermite_e.hermegauss(7)  # nodes and weights for a unit Gaussian
@@ -193,7 +200,7 @@ def corrected_spot_pixels(
     px = px0.copy()
     for _ in range(rounds):
         rows = np.concatenate([np.asarray(lasers, float).reshape(-1, 1), px], axis=1)
-        xyz, ok = map_padded(_points_of_jit, rig, rows=rows)
+        xyz, ok = map_padded(_points_of_jit, _bucketed(rig), rows=rows)
         radial = xyz - (xyz @ a)[:, None] * a
         norm = np.linalg.norm(radial, axis=1, keepdims=True)
         ok = ok & (norm[:, 0] > 1e-9)
@@ -208,7 +215,7 @@ def spot_image_offsets(rig: Rig, xyz: np.ndarray, normals: np.ndarray, sigma_mm:
     if not len(xyz):
         return np.zeros((0, 2))
     rows = np.concatenate([xyz, np.asarray(normals, float).reshape(-1, 3), np.full((len(xyz), 1), sigma_mm)], 1)
-    return np.asarray(map_padded(_spot_offsets_jit, rig, rows=rows))
+    return np.asarray(map_padded(_spot_offsets_jit, _bucketed(rig), rows=rows))
 
 
 def _ray_rate(rig: Rig, px: Float[Array, "2"]) -> Float[Array, ""]:
@@ -237,8 +244,13 @@ def _with_jacobians(rig: Rig, lasers, uv):
     return _triangulate(rig, lasers, uv), j_px, j_rig, ray_rate
 
 
+def _jacobian_rows(rig: Rig, rows):
+    """:func:`_with_jacobians` of rows ``[laser, u, v]``."""
+    return _with_jacobians(rig, rows[:, 0].astype(jnp.int32), rows[:, 1:3])
+
+
 triangulate_spots = jax.jit(_triangulate)
-_with_jacobians_jit = jax.jit(_with_jacobians)
+_with_jacobians_jit = PersistentJit(map_rows(_jacobian_rows), "spot_jacobians")
 
 
 @dataclass
@@ -304,9 +316,10 @@ def spots_on_lines(
     if not len(pixels):
         return np.zeros((0, n_las), bool)
     if ray_rate is None:
-        ray_rate = np.asarray(map_padded(_ray_rate_jit, rig, rows=pixels))
+        ray_rate = np.asarray(map_padded(_ray_rate_jit, _bucketed(rig), rows=pixels))
     off_std, dir_std = _laser_stds(rig, rig_cov)
-    gaps, along, reach, near_ok = map_padded(_gaps_to_every_laser_jit, rig, rows=pixels)
+    out = map_padded(_gaps_to_every_laser_jit, _bucketed(rig), rows=pixels)
+    gaps, along, reach, near_ok = (a[:, :n_las] for a in out)
     gap_std = np.hypot(along * pixel_sigma * ray_rate[:, None], np.hypot(off_std, dir_std * reach))
     return near_ok & (gaps <= np.maximum(GAP_SIGMAS * gap_std, GAP_FLOOR_MM))
 
@@ -348,10 +361,18 @@ def measure_spots(
     lasers = np.asarray(lasers, dtype=np.int64)
     pixels = np.asarray(pixels, dtype=float).reshape(-1, 2)
     view_of = np.asarray(view_of, dtype=np.int64)
+    if lasers.shape != (len(pixels),) or view_of.shape != (len(pixels),):
+        raise ValueError(
+            f"{len(pixels)} pixels need as many laser and view indices, got {lasers.shape} and {view_of.shape}"
+        )
+    bad = np.flatnonzero((lasers < 0) | (lasers >= rig.lasers.n))
+    if bad.size:
+        raise ValueError(f"spot {bad[0]}'s laser index {lasers[bad[0]]} is not one of the rig's {rig.lasers.n} lasers")
     if lasers.size:
-        sp, j_px, j_rig, ray_rate = _with_jacobians_jit(rig, jnp.asarray(lasers), jnp.asarray(pixels))
-        xyz, gap, angle, valid = (np.asarray(a) for a in sp)
-        j_px, j_rig, ray_rate = np.asarray(j_px), np.asarray(j_rig), np.asarray(ray_rate)
+        rows = np.concatenate([lasers[:, None].astype(float), pixels], axis=1)
+        sp, j_px, j_rig, ray_rate = map_padded(_with_jacobians_jit, _bucketed(rig), rows=rows)
+        xyz, gap, angle, valid = sp
+        j_rig = j_rig[:, :, : rig.tangent_dim]  # the padded lasers' columns come last
     else:
         xyz, gap, angle, valid = np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros(0, bool)
         j_px, j_rig, ray_rate = np.zeros((0, 3, 2)), np.zeros((0, 3, rig.tangent_dim)), np.zeros(0)
@@ -497,7 +518,10 @@ def fit_circle(q: np.ndarray, cov_q: np.ndarray | None = None, weighted: bool = 
         raise ValueError("the circle fit did not converge (non-finite centre or radius)")
     d_std = c_std = None
     if cov_q is not None:
-        sens = np.asarray(_circle_sensitivity(jnp.asarray(theta), jnp.asarray(q), jnp.asarray(w))).reshape(3, 2 * n)
+        size = bucket(n)  # padded points of weight 0 change nothing: one compilation per bucket
+        qp, wp = pad_rows(q, size), pad_rows(w, size, 0.0)
+        sens = np.asarray(_circle_sensitivity(jax.device_put(theta), jax.device_put(qp), jax.device_put(wp)))
+        sens = sens[:, :n].reshape(3, 2 * n)
         ct = sens @ np.asarray(cov_q) @ sens.T
         if not np.all(np.isfinite(ct)):
             raise ValueError("the circle's covariance is not finite (a point's uncertainty is unbounded)")
