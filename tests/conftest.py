@@ -60,3 +60,29 @@ def _release_compiled_programs():
     cache): a worker that runs many files otherwise keeps thousands of executables mapped."""
     yield
     jax.clear_caches()
+
+
+@pytest.fixture
+def compilations():
+    """A context manager that lists the programs JAX compiles while it is open."""
+    import contextlib
+    import logging
+
+    @contextlib.contextmanager
+    def listen():
+        compiled = []
+
+        class Count(logging.Handler):
+            def emit(self, record):
+                if record.getMessage().startswith("Compiling "):
+                    compiled.append(record.getMessage()[:120])
+
+        handler, logger = Count(), logging.getLogger("jax")
+        logger.addHandler(handler)
+        try:
+            with jax.log_compiles(True):
+                yield compiled
+        finally:
+            logger.removeHandler(handler)
+
+    return listen

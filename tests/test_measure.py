@@ -291,29 +291,15 @@ def _measure_and_fit(rig, spots):
     return views, [fit_circle_3d(vp.xyz, vp.cov) for vp in views]
 
 
-def test_measuring_a_new_number_of_spots_and_lasers_compiles_nothing():
+def test_measuring_a_new_number_of_spots_and_lasers_compiles_nothing(compilations):
     """After one measurement, spots of another count from a rig of another laser count in the
     same bucket are triangulated, with their Jacobians and circle fits, by the same programs."""
-    import logging
-
     rig7, rig5 = paper_rig(7), paper_rig(5)
     first, other = _pipe_spots(rig7, 1), _pipe_spots(rig5, 2)
     assert len(first[0]) != len(other[0])
     _measure_and_fit(rig7, first)
-    compiled = []
-
-    class Count(logging.Handler):
-        def emit(self, record):
-            if record.getMessage().startswith("Compiling "):
-                compiled.append(record.getMessage()[:120])
-
-    handler, logger = Count(), logging.getLogger("jax")
-    logger.addHandler(handler)
-    try:
-        with jax.log_compiles(True):
-            views, circles = _measure_and_fit(rig5, other)
-    finally:
-        logger.removeHandler(handler)
+    with compilations() as compiled:
+        views, circles = _measure_and_fit(rig5, other)
     assert compiled == []
     assert sum(len(vp.xyz) for vp in views) == len(other[0])
     assert all(c.diameter_std > 0 for c in circles)

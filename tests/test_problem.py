@@ -148,30 +148,16 @@ def test_padded_problem_solves_as_the_unpadded_one():
 
 
 @pytest.mark.slow
-def test_a_new_problem_size_compiles_nothing():
+def test_a_new_problem_size_compiles_nothing(compilations):
     """After one calibration, a dataset of other sizes in the same buckets (fewer views and
     lasers, other sensor poses: fewer dots, spots, rim pixels and board poses) compiles no
     program: every function it runs is compiled per bucket, none op by op on its own sizes."""
-    import logging
-
     from slcvjax.calibration.calibrate import calibrate
 
     first, _ = simulate(make_scene("paper", n_lasers=7, n_views=11), noise=0.3, seed=5)
     other, _ = simulate(make_scene("paper", n_lasers=5, n_views=9), noise=0.3, seed=6)
     calibrate(first)
-    compiled = []
-
-    class Count(logging.Handler):
-        def emit(self, record):
-            if record.getMessage().startswith("Compiling "):
-                compiled.append(record.getMessage()[:120])
-
-    handler, logger = Count(), logging.getLogger("jax")
-    logger.addHandler(handler)
-    try:
-        with jax.log_compiles(True):
-            res = calibrate(other)
-    finally:
-        logger.removeHandler(handler)
+    with compilations() as compiled:
+        res = calibrate(other)
     assert res.passes[-1].converged
     assert compiled == []
