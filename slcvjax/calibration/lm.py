@@ -796,8 +796,7 @@ def make_masks(params: Params, freeze: frozenset | set | tuple = (), estimate: f
 def pad_params(layout: Layout, params: Params) -> Params:
     """``params`` with its board and direct-view poses and its lasers padded to ``layout``'s
     bucket sizes (the box poses as they are: :mod:`slcvjax.calibration.rigid` pads them)."""
-    rig = params.rig
-    rig = Rig(rig.camera, rig.mirror, layout.pad_lasers(rig.lasers))
+    rig = Rig(params.rig.camera, params.rig.mirror, layout.pad_lasers(params.rig.lasers))
     return Params(rig, layout.pad_poses(params.poses), layout.pad_poses(params.chess, chess=True), params.box)
 
 

@@ -315,10 +315,11 @@ def spots_on_lines(
     n_las = rig.lasers.n
     if not len(pixels):
         return np.zeros((0, n_las), bool)
+    padded = _bucketed(rig)
     if ray_rate is None:
-        ray_rate = np.asarray(map_padded(_ray_rate_jit, _bucketed(rig), rows=pixels))
+        ray_rate = np.asarray(map_padded(_ray_rate_jit, padded, rows=pixels))
     off_std, dir_std = _laser_stds(rig, rig_cov)
-    out = map_padded(_gaps_to_every_laser_jit, _bucketed(rig), rows=pixels)
+    out = map_padded(_gaps_to_every_laser_jit, padded, rows=pixels)
     gaps, along, reach, near_ok = (a[:, :n_las] for a in out)
     gap_std = np.hypot(along * pixel_sigma * ray_rate[:, None], np.hypot(off_std, dir_std * reach))
     return near_ok & (gaps <= np.maximum(GAP_SIGMAS * gap_std, GAP_FLOOR_MM))

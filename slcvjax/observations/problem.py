@@ -373,12 +373,12 @@ class Layout(NamedTuple):
         n = self.lasers[0]
         return Lasers(np.asarray(lasers.points)[:n], np.asarray(lasers.directions)[:n])
 
-    def pad_glob(self, x, fill=0.0) -> np.ndarray:
-        """A global-block vector (camera, mirror, lasers, box poses) with the padded lasers'
-        columns inserted (``fill``)."""
+    def pad_glob(self, x) -> np.ndarray:
+        """A global-block vector (camera, mirror, lasers, box poses) with zeros inserted for the
+        padded lasers' columns (in a mask: held)."""
         x = np.asarray(x)
         at, k = self._laser_gap()
-        return np.concatenate([x[:at], np.full(k, fill, x.dtype), x[at:]]) if k else x
+        return np.concatenate([x[:at], np.zeros(k, x.dtype), x[at:]]) if k else x
 
     def unpad_glob(self, x, axes: tuple[int, ...] = (0,)) -> np.ndarray:
         """A padded global-block array with the padded lasers' rows cut from each of ``axes``."""
