@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from slcvjax import Rig, calibrate, cramer_rao, laser_errors, make_scene, report, simulate
+from slcvjax import calibrate, cramer_rao, laser_errors, make_scene, report, simulate
 
 
 def main() -> None:
@@ -37,7 +37,7 @@ def main() -> None:
         dt = time.perf_counter() - t0
         p, a = laser_errors(res.rig, truth.rig, bound["x_ref"])
         st = res.staged
-        ps, as_ = laser_errors(Rig(st.camera, st.mirror, st.lasers), truth.rig, bound["x_ref"])
+        ps, as_ = laser_errors(st.rig, truth.rig, bound["x_ref"])
         rep = report(res, obs)["residuals"]
         ok = res.passes[-1].converged and rep["invalid"] == 0 and abs(rep["sigma_px"] / args.noise - 1) < 0.25
         joint_p.append(p), joint_a.append(a), staged_p.append(ps), staged_a.append(as_)

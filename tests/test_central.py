@@ -18,7 +18,7 @@ _NO_LASERS = Lasers.create(np.zeros((0, 3)), np.zeros((0, 3)))
 
 def _through_mirror_only(rig, n_views=8, noise=0.3, seed=4):
     """Observations of the box's walls through the mirror only: no direct views, no rim."""
-    rig = Rig(rig.camera, rig.mirror, _NO_LASERS)
+    rig = rig.with_lasers(_NO_LASERS)
     obs, truth = simulate(box_scene(rig, paper_views(n_views), n_chess_views=0), noise=noise, seed=seed)
     obs = dataclasses.replace(obs, views=[dataclasses.replace(v, rim=np.zeros((0, 2))) for v in obs.views])
     assert not obs.calibration_views

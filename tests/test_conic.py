@@ -253,12 +253,11 @@ def test_a_catadioptric_camera_without_lasers_calibrates_from_the_cli(tmp_path, 
     the calibration written with no lasers and its mirror within its reported std."""
     from slcvjax import cli
     from slcvjax.geometry.lasers import Lasers
-    from slcvjax.geometry.rig import Rig
     from slcvjax.observations.formats import write_observations
     from slcvjax.observations.simulate import box_scene, paper_views, simulate
 
     rig = _conic_rig("hyperboloid", 15.0, -2.0)
-    rig = Rig(rig.camera, rig.mirror, Lasers.create(np.zeros((0, 3)), np.zeros((0, 3))))
+    rig = rig.with_lasers(Lasers.create(np.zeros((0, 3)), np.zeros((0, 3))))
     obs, truth = simulate(box_scene(rig, paper_views(8), n_chess_views=6), noise=0.3, seed=4)
     write_observations(tmp_path / "obs.json", obs)
     assert cli.main(["calibrate", str(tmp_path / "obs.json"), "--out", str(tmp_path / "cal.json")]) == 0

@@ -165,7 +165,7 @@ def test_bad_calibration_files(tmp_path, small):
 
 def test_atomic_write_leaves_nothing_on_failure(tmp_path, small):
     _, truth = small
-    bad = sj.Rig(truth.rig.camera, truth.rig.mirror, sj.Lasers.create([[np.nan, 0, 0]], [[1.0, 0, 0]]))
+    bad = truth.rig.with_lasers(sj.Lasers.create([[np.nan, 0, 0]], [[1.0, 0, 0]]))
     path = tmp_path / "out.json"
     with pytest.raises(ValueError):
         write_calibration(path, sj.observations.formats.Calibration(bad))

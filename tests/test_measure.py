@@ -63,7 +63,7 @@ def test_parallel_ray_and_line_is_invalid_with_finite_gradients(rig):
     uv = jnp.array([420.0, 200.0])
     ray = jax.jit(back_project)(rig.camera, rig.mirror, uv)
     las = Lasers(ray.point[None] + jnp.array([[0.0, 0.0, 5.0]]), ray.direction[None])
-    r2 = Rig(rig.camera, rig.mirror, las)
+    r2 = rig.with_lasers(las)
     sp = _triangulate(r2, jnp.asarray(0), uv)
     assert not bool(sp.valid)
     g = jax.jit(jax.jacfwd(lambda u: triangulate_spot(r2, jnp.asarray(0), u).xyz))(uv)

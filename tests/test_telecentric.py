@@ -140,7 +140,7 @@ def test_a_telecentric_calibration_and_observations_round_trip(tmp_path):
 
 def _observations(rig, n_views=8, noise=0.3, seed=4):
     """The box's walls through the mirror only (no direct views, no rim), as telecentric observations."""
-    rig = Rig(rig.camera, rig.mirror, _NO_LASERS)
+    rig = rig.with_lasers(_NO_LASERS)
     obs, truth = simulate(box_scene(rig, paper_views(n_views), n_chess_views=0), noise=noise, seed=seed)
     views = [dataclasses.replace(v, rim=np.zeros((0, 2))) for v in obs.views]
     return dataclasses.replace(obs, views=views, camera_projection="telecentric"), truth

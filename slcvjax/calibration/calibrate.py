@@ -814,7 +814,7 @@ class _Trial:
                 raise CalibrationError("calibration_views: no direct views and no camera given")
         else:
             chess_stack = stack_poses(chess)
-        self.params = Params(Rig(st.camera, st.mirror, st.lasers), stack_poses(st.poses), chess_stack)
+        self.params = Params(st.rig, stack_poses(st.poses), chess_stack)
         self.masks = make_masks(self.params, set(freeze), estimate)
         self.mask_a = make_masks(self.params, set(freeze) | {"lasers"}, estimate)
         self.fine = fine
@@ -926,7 +926,7 @@ def _calibrate_lockstep(
             cos = np.abs(np.sum(np.asarray(aimed.directions) * np.asarray(p.rig.lasers.directions), axis=1))
             if np.any(cos < np.cos(np.radians(AIMED_TURN_DEG))):
                 picked.append(i)
-                starts.append(Params(Rig(p.rig.camera, p.rig.mirror, aimed), p.poses, p.chess))
+                starts.append(Params(p.rig.with_lasers(aimed), p.poses, p.chess))
         if not picked:
             return
         jobs = [_job(trials[i], st, PASS_B2) for i, st in zip(picked, starts, strict=True)]
@@ -948,7 +948,7 @@ def _calibrate_lockstep(
         for tr in trials:
             p = tr.params
             fit = fit_lasers(p.rig.camera, p.rig.mirror, tr.pk, unstack_poses(p.poses), tr.obs.n_lasers)
-            tr.params = Params(Rig(p.rig.camera, p.rig.mirror, fit.lasers), p.poses, p.chess)
+            tr.params = Params(p.rig.with_lasers(fit.lasers), p.poses, p.chess)
             _relabel_spots(tr, fit)
     run(PASS_B, every)
     if "lasers" not in freeze:
@@ -1948,7 +1948,7 @@ def to_calibration(result: CalibrationResult, obs: Observations) -> Calibration:
     st = result.staged
     stages = {
         "staged": {
-            **_rig_json(Rig(st.camera, st.mirror, st.lasers)),
+            **_rig_json(st.rig),
             "reports": [
                 {"stage": r.name, "rms": _finite_or_none(r.rms), "unit": r.unit, "notes": r.notes} for r in st.reports
             ],

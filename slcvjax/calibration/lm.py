@@ -796,14 +796,14 @@ def make_masks(params: Params, freeze: frozenset | set | tuple = (), estimate: f
 def pad_params(layout: Layout, params: Params) -> Params:
     """``params`` with its board and direct-view poses and its lasers padded to ``layout``'s
     bucket sizes (the box poses as they are: :mod:`slcvjax.calibration.rigid` pads them)."""
-    rig = Rig(params.rig.camera, params.rig.mirror, layout.pad_lasers(params.rig.lasers))
+    rig = params.rig.with_lasers(layout.pad_lasers(params.rig.lasers))
     return Params(rig, layout.pad_poses(params.poses), layout.pad_poses(params.chess, chess=True), params.box)
 
 
 def unpad_params(layout: Layout, params: Params) -> Params:
     """The real poses and lasers of padded ``params`` (host arrays; the box poses all kept)."""
     box = None if params.box is None else Pose(np.asarray(params.box.R), np.asarray(params.box.t))
-    rig = Rig(params.rig.camera, params.rig.mirror, layout.unpad_lasers(params.rig.lasers))
+    rig = params.rig.with_lasers(layout.unpad_lasers(params.rig.lasers))
     return Params(rig, layout.unpad_poses(params.poses), layout.unpad_poses(params.chess, chess=True), box)
 
 

@@ -29,6 +29,7 @@ from ..geometry.camera import Camera, undistort
 from ..geometry.lasers import Lasers
 from ..geometry.mirror import Mirror, back_project, mirror_of_shape
 from ..geometry.pose import Pose, so3_exp
+from ..geometry.rig import Rig
 from ..observations.formats import Observations, SpotObs, ViewObs, shape_missing
 from ..observations.problem import (
     POSE_LADDER,
@@ -580,6 +581,11 @@ class Staged:
     chess_poses: dict[int, Pose]
     reports: list[StageReport]
     packed: Packed | None = None
+
+    @property
+    def rig(self) -> Rig:
+        """The staged camera, mirror and lasers as one rig."""
+        return Rig(self.camera, self.mirror, self.lasers)
 
 
 def staged(obs: Observations, camera: Camera | None = None, pk: Packed | None = None, mirror=None) -> Staged:

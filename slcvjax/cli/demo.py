@@ -17,7 +17,6 @@ def run(args) -> int:
         reprojections,
         to_calibration,
     )
-    from ..geometry.rig import Rig
     from ..images.centroids import calibrate_detected
     from ..observations.problem import KIND_NAMES
     from ..observations.simulate import make_scene, simulate
@@ -79,7 +78,7 @@ def run(args) -> int:
     bound = cramer_rao(truth, obs, sigma, packed=res.packed, rigid=rigid)
     pos, ang = laser_errors(res.rig, truth.rig, bound["x_ref"])
     st = res.staged
-    pos_s, ang_s = laser_errors(Rig(st.camera, st.mirror, st.lasers), truth.rig, bound["x_ref"])
+    pos_s, ang_s = laser_errors(st.rig, truth.rig, bound["x_ref"])
     unc = cal.extra["uncertainty"]["lasers"]
     if images:
         each = ", ".join(f"{k} {v:.3g}" for k, v in zip(KIND_NAMES, sigma, strict=True))

@@ -191,7 +191,7 @@ def _emitters_seen(rig: Rig, body):
 def _evaluate(u, start, ranges, rig0, views, T_bw, chess, pk, sigma, n_v, radii, body):
     """At the design variables ``u``: per diameter the predicted variance and the spots' margins,
     the wall spots per laser, whether each emitter is seen."""
-    rig = Rig(rig0.camera, rig0.mirror, _lasers_at(u, start, ranges))
+    rig = rig0.with_lasers(_lasers_at(u, start, ranges))
     cov, _, w_spot, _ = calibration_covariance(views, rig, T_bw, chess, pk, sigma, n_v)
     var_d, seen, rim, body_m, img, angle = jax.vmap(lambda r: _pipe_prediction(rig, cov, sigma, r, body))(radii)
     wall = jax.ops.segment_sum(w_spot.astype(int), pk.spot_laser, num_segments=rig.lasers.n)
@@ -287,7 +287,7 @@ class _Compiled:
 
     def rig_at(self, u) -> Rig:
         r = self.mp.plan.rig
-        return Rig(r.camera, r.mirror, _lasers_at(jnp.asarray(u), self.start, self.ranges))
+        return r.with_lasers(_lasers_at(jnp.asarray(u), self.start, self.ranges))
 
 
 @dataclass

@@ -113,7 +113,7 @@ def run_sweep(
     per_trial = (time.perf_counter() - t1) / len(results)
     for (li, s, t, sd), res in zip(seeds, results, strict=True):
         st = res.staged
-        for m, rig in (("joint", res.rig), ("staged", Rig(st.camera, st.mirror, st.lasers))):
+        for m, rig in (("joint", res.rig), ("staged", st.rig)):
             comp[m][li, t] = laser_component_errors(rig, truth.rig, x_ref)
             pos[m][li, t], ang[m][li, t] = laser_errors(rig, truth.rig, x_ref)
         detail.append(

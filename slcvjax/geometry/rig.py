@@ -51,6 +51,10 @@ class Rig(eqx.Module):
         """The rig of a plain camera: no mirror, no lasers."""
         return cls(camera, None, Lasers.create(np.zeros((0, 3)), np.zeros((0, 3))))
 
+    def with_lasers(self, lasers: Lasers) -> "Rig":
+        """This rig's camera and mirror with other lasers."""
+        return Rig(self.camera, self.mirror, lasers)
+
     @property
     def tangent_dim(self) -> int:
         return CAMERA_DOF + MIRROR_DOF + LASER_DOF * self.lasers.n

@@ -112,7 +112,7 @@ def _bucketed(rig: Rig) -> Rig:
     """``rig`` with its lasers padded to their bucket (:func:`padded_lasers`), for the compiled
     maps below: one compilation serves every laser count of a bucket.  The padded lines come
     after the real ones, so a spot's laser index and the rig's tangent columns keep their place."""
-    return Rig(rig.camera, rig.mirror, padded_lasers(rig.lasers))
+    return rig.with_lasers(padded_lasers(rig.lasers))
 
 
 _HERMITE = np.polynomial.hermite_e.hermegauss(7)  # nodes and weights for a unit Gaussian
