@@ -69,8 +69,18 @@ def test_second_derivatives_of_undistortion_are_exact():
 def test_newton_polish_reaches_a_stationary_point(solved):
     res, arr, p0, steps = solved
     assert 1 <= steps <= 6
-    lin = _implicit._linearise_jit(p0, arr, res.masks, res.loss, jnp.asarray(res.scale, dtype=float), jnp.ones(4))
+    lin = _implicit._linearised(p0, arr, res.masks, res.loss, res.scale, None)
     assert float(jnp.max(jnp.abs(lin.step_g))) < 1e-9
+
+
+@pytest.mark.slow
+def test_newton_from_the_lm_solution_compiles_its_linearisation_once(solved):
+    # the LM's solution holds host arrays, Newton's steps give device arrays: one program for both
+    res, arr, _, _ = solved
+    _implicit._linearise_jit.clear_cache()
+    _, steps = _implicit.stationary_point(res.params, arr, res.masks, res.loss, res.scale)
+    assert steps >= 1
+    assert _implicit._linearise_jit._cache_size() == 1
 
 
 @pytest.mark.slow

@@ -39,6 +39,7 @@ from jaxtyping import Array, Float
 
 from ..geometry.rig import laser_columns
 from ..observations.problem import Kind, Packed, kind_weights
+from ..support.persist import committed
 from . import lm as _lm
 from .lm import N_CAM, N_CM, N_LAS, Masks, Params
 
@@ -220,6 +221,14 @@ def _linearise(params: Params, pk: Packed, masks: Masks, loss: str, scale, kind_
 _linearise_jit = jax.jit(_linearise, static_argnames=("loss",))
 
 
+def _linearised(params: Params, pk: Packed, masks: Masks, loss: str, scale, kind_weight) -> _Linearised:
+    """:func:`_linearise` compiled, its arguments :func:`committed`: a solution straight from
+    the LM holds host arrays, a Newton step's result device arrays, and the two were two
+    compilations of the same program (20 s each for a small scene)."""
+    args = committed((params, pk, masks, jnp.asarray(scale, dtype=float), kind_weights(kind_weight)))
+    return _linearise_jit(*args[:3], loss, *args[3:])
+
+
 def _tangent(lin: _Linearised, masks: Masks, dy: Float[Array, "n 5"]):
     g, nb = lin.step_g.shape[0], lin.step_p.shape[0]
     v = -jnp.einsum("nij,nj->ni", lin.blocks.m, dy)
@@ -242,7 +251,7 @@ def solution_tangent(
     holds tangents of the fields in :data:`DATA_FIELDS` (a :class:`Packed` of tangents,
     or any object with some of these attributes; missing ones count as zero).
     """
-    lin = _linearise_jit(params, pk, masks, loss, jnp.asarray(scale, dtype=float), kind_weights(kind_weight))
+    lin = _linearised(params, pk, masks, loss, scale, kind_weight)
     return _tangent_jit(lin, masks, _data_tangent(pk, dpk))
 
 
@@ -260,7 +269,7 @@ def stationary_point(
     """
     last = np.inf
     for k in range(max_steps):
-        lin = _linearise_jit(params, pk, masks, loss, jnp.asarray(scale, dtype=float), kind_weights(kind_weight))
+        lin = _linearised(params, pk, masks, loss, scale, kind_weight)
         size = float(jnp.maximum(jnp.max(jnp.abs(lin.step_g)), jnp.max(jnp.abs(lin.step_p), initial=0.0)))
         if not np.isfinite(size) or (k >= 2 and size > 0.5 * last):
             raise ValueError(f"Newton from the given solution does not converge (step {size:.3g} after {last:.3g})")
@@ -357,7 +366,7 @@ def sensitivity(result, x_ref: np.ndarray | None = None) -> Sensitivity:
     arr = pk.arrays()
     kw = kind_weights()  # the final pass's kind weights
     params, steps = stationary_point(result.params, arr, result.masks, result.loss, result.scale, kw)
-    lin = _linearise_jit(params, arr, result.masks, result.loss, jnp.asarray(result.scale, dtype=float), kw)
+    lin = _linearised(params, arr, result.masks, result.loss, result.scale, kw)
     if x_ref is None:
         x_ref = laser_working_points(params.rig, params.poses, pk)
     xg, _ = _pixel_columns(lin, result.masks)

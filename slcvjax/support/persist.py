@@ -50,6 +50,22 @@ def _dtype(x):
     return x.dtype if hasattr(x, "dtype") else np.result_type(x)
 
 
+def committed(tree):
+    """``tree`` with every leaf a strongly typed array committed to the default device.
+
+    ``jax.jit`` compiles one program for host arrays, Python scalars or weakly typed arrays
+    and another for committed device arrays of the same shapes (the trace is shared, the
+    lowered program is not): a compiled entry point that receives both, say a calibration's
+    host arrays and then a device result, passes its arguments through this first."""
+    device = jax.devices()[0]
+    return jax.tree_util.tree_map(
+        lambda x: jax.device_put(
+            x if isinstance(x, jax.Array) and not x.weak_type else jnp.asarray(x, dtype=_dtype(x)), device
+        ),
+        tree,
+    )
+
+
 def _folder() -> Path | None:
     d = compilation_cache_dir()
     return None if d is None else Path(d) / "traces"
@@ -73,16 +89,9 @@ class PersistentJit:
         self._calls: dict = {}
 
     def __call__(self, *args):
-        leaves, tree = jax.tree_util.tree_flatten(args)
-        # every leaf a strongly typed array committed to the default device: Python scalars,
-        # weakly typed or uncommitted arrays would make one exported signature several compilations
-        device = jax.devices()[0]
-        leaves = [
-            jax.device_put(
-                x if isinstance(x, jax.Array) and not x.weak_type else jnp.asarray(x, dtype=_dtype(x)), device
-            )
-            for x in leaves
-        ]
+        # Python scalars, weakly typed or uncommitted arrays would make one exported signature
+        # several compilations
+        leaves, tree = jax.tree_util.tree_flatten(committed(args))
         sig = (str(tree), tuple((x.shape, str(x.dtype)) for x in leaves))
         entry = self._calls.get(sig)
         if entry is None:
