@@ -84,6 +84,22 @@ def test_newton_from_the_lm_solution_compiles_its_linearisation_once(solved):
 
 
 @pytest.mark.slow
+def test_the_sensitivity_of_other_sizes_compiles_no_linearisation(solved):
+    # another dataset's numbers of lasers, views, dots and spots fall in the same shape buckets
+    res, *_ = solved
+    first = _implicit.sensitivity(res)
+    n = _implicit._linearise_jit._cache_size()
+    obs, _ = simulate(make_scene("paper", n_lasers=3, n_views=6), noise=0.5, seed=4)
+    other = calibrate(obs)
+    assert other.packed.counts[0] != res.packed.counts[0] and other.rig.lasers.n != res.rig.lasers.n
+    sens = _implicit.sensitivity(other)
+    assert _implicit._linearise_jit._cache_size() == n
+    assert sens.glob.shape == (other.rig.tangent_dim, 2 * int(np.sum(other.packed.counts)))
+    assert first.glob.shape == (res.rig.tangent_dim, 2 * int(np.sum(res.packed.counts)))
+    assert np.all(np.isfinite(sens.glob))
+
+
+@pytest.mark.slow
 def test_solution_derivative_matches_finite_differences(solved):
     res, arr, p0, _ = solved
     rng = np.random.default_rng(0)

@@ -38,10 +38,10 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ..geometry.rig import laser_columns
-from ..observations.problem import Kind, Packed, kind_weights
+from ..observations.problem import Kind, Layout, Packed, kind_weights, map_rows
 from ..support.persist import committed
 from . import lm as _lm
-from .lm import N_CAM, N_CM, N_LAS, Masks, Params
+from .lm import N_CAM, N_CM, N_LAS, Masks, Params, pad_masks, pad_params, unpad_params
 
 N_G = N_CM + N_LAS  # the global part of an observation's local parameters (padded)
 DATA_FIELDS = ("dot_pixels", "spot_pixels", "rim_pixels", "chess_pixels", "dot_points", "chess_points")
@@ -116,31 +116,59 @@ def _observation_blocks(params: Params, pk: Packed, loss: str, scale, kind_weigh
 
     cm = jnp.arange(N_CM)
     none = jnp.full(N_LAS, g)
+
+    def blocks(fn, count, rows, *consts):
+        """``_second_order(fn)`` of each row ``[data 5 | indices]`` up to ``count``, the rest zeros:
+        a padded problem's padding costs next to nothing (the loop stops at the last chunk that
+        holds a real row) and adds nothing."""
+        out = map_rows(lambda *a: jax.vmap(lambda r: fn(r, *a[:-1]))(a[-1]))(*consts, rows, count)
+        real = jnp.arange(rows.shape[0]) < count
+        return tuple(jnp.where(real.reshape((-1,) + (1,) * (x.ndim - 1)), x, 0.0) for x in out)
+
+    def idx(a):
+        return a.astype(float)[:, None]
+
+    def index(r, at):
+        return r[at].astype(int)
+
     out = []
     # dots: [camera, mirror | pose], data [pixel | board point]
     f = residual_grad(lambda d, R, t, xb, px: _lm._dot(d, cam, mir, R, t, xb, px), Kind.DOT, N_CM, True, True)
-    y = jnp.concatenate([pk.dot_pixels, pk.dot_points], axis=1)
-    gr, h, m = jax.vmap(_second_order(f))(y, params.poses.R[pk.dot_pose], params.poses.t[pk.dot_pose])
-    n = y.shape[0]
+    rows = jnp.concatenate([pk.dot_pixels, pk.dot_points, idx(pk.dot_pose)], axis=1)
+
+    def dot(r, R, t):
+        return _second_order(f)(r[:5], R[index(r, 5)], t[index(r, 5)])
+
+    gr, h, m = blocks(dot, pk.counts[Kind.DOT], rows, params.poses.R, params.poses.t)
+    n = rows.shape[0]
     out.append((gr, h, m, jnp.broadcast_to(jnp.concatenate([cm, none]), (n, N_G)), pk.dot_pose))
     # spots: [camera, mirror, laser | pose], data [pixel | (none)]
     f = residual_grad(lambda d, lp, ld, R, t, px: _lm._spot(d, cam, mir, lp, ld, R, t, px), Kind.SPOT, N_G, True, False)
-    y = jnp.concatenate([pk.spot_pixels, jnp.zeros((pk.spot_pixels.shape[0], 3))], axis=1)
-    R, t = params.poses.R[pk.spot_pose], params.poses.t[pk.spot_pose]
-    gr, h, m = jax.vmap(_second_order(f))(y, las.points[pk.spot_laser], las.directions[pk.spot_laser], R, t)
+    n = pk.spot_pixels.shape[0]
+    rows = jnp.concatenate([pk.spot_pixels, jnp.zeros((n, 3)), idx(pk.spot_laser), idx(pk.spot_pose)], axis=1)
+
+    def spot(r, lp, ld, R, t):
+        i, p = index(r, 5), index(r, 6)
+        return _second_order(f)(r[:5], lp[i], ld[i], R[p], t[p])
+
+    gr, h, m = blocks(spot, pk.counts[Kind.SPOT], rows, las.points, las.directions, params.poses.R, params.poses.t)
     lidx = N_CM + N_LAS * pk.spot_laser[:, None] + jnp.arange(N_LAS)[None, :]
-    gi = jnp.concatenate([jnp.broadcast_to(cm, (y.shape[0], N_CM)), lidx], axis=1)
+    gi = jnp.concatenate([jnp.broadcast_to(cm, (n, N_CM)), lidx], axis=1)
     out.append((gr, h, m, gi, pk.spot_pose))
     # rim pixels: [camera, mirror], data [pixel]
-    y = jnp.concatenate([pk.rim_pixels, jnp.zeros((pk.rim_pixels.shape[0], 3))], axis=1)
-    gr, h, m = jax.vmap(_second_order(rim_grad))(y)
-    n = y.shape[0]
+    n = pk.rim_pixels.shape[0]
+    rows = jnp.concatenate([pk.rim_pixels, jnp.zeros((n, 3))], axis=1)
+    gr, h, m = blocks(lambda r: _second_order(rim_grad)(r), pk.counts[Kind.RIM], rows)
     out.append((gr, h, m, jnp.broadcast_to(jnp.concatenate([cm, none]), (n, N_G)), jnp.full(n, nb)))
     # chessboard corners: [camera | direct-view pose], data [pixel | board point]
     f = residual_grad(lambda d, R, t, xb, px: _lm._chess(d, cam, R, t, xb, px), Kind.CHESS, N_CAM, True, True)
-    y = jnp.concatenate([pk.chess_pixels, pk.chess_points], axis=1)
-    gr, h, m = jax.vmap(_second_order(f))(y, params.chess.R[pk.chess_pose], params.chess.t[pk.chess_pose])
-    n = y.shape[0]
+    rows = jnp.concatenate([pk.chess_pixels, pk.chess_points, idx(pk.chess_pose)], axis=1)
+
+    def corner(r, R, t):
+        return _second_order(f)(r[:5], R[index(r, 5)], t[index(r, 5)])
+
+    gr, h, m = blocks(corner, pk.counts[Kind.CHESS], rows, params.chess.R, params.chess.t)
+    n = rows.shape[0]
     gi = jnp.broadcast_to(jnp.concatenate([jnp.arange(N_CAM), jnp.full(N_G - N_CAM, g)]), (n, N_G))
     out.append((gr, h, m, gi, n_p + pk.chess_pose))
     return _Blocks(*(jnp.concatenate(parts) for parts in zip(*out, strict=True)))
@@ -255,6 +283,41 @@ def solution_tangent(
     return _tangent_jit(lin, masks, _data_tangent(pk, dpk))
 
 
+def _padded(params: Params, pk: Packed, masks: Masks) -> tuple[Layout, Params, Packed, Masks]:
+    """The problem padded to its shape buckets (:class:`Layout`: observations, poses, lasers),
+    so that every dataset of a bucket shares one compiled linearisation; padded rows add
+    nothing (:func:`_observation_blocks` visits the real rows only), padded lasers and poses
+    are held."""
+    layout = Layout.of(
+        pk, n_poses=params.poses.t.shape[0], n_chess=params.chess.t.shape[0], n_lasers=params.rig.lasers.n
+    )
+    return layout, pad_params(layout, params), layout.pad_packed(pk), pad_masks(layout, masks)
+
+
+def _unpadded(layout: Layout, lin: _Linearised) -> _Linearised:
+    """A padded problem's linearisation restricted to its real observations, parameters and pose
+    blocks, the indices renumbered (a column or block that is none: the real sizes)."""
+    bl, hs = lin.blocks, lin.hessian
+    g_pad, nb_pad = lin.step_g.shape[0], lin.step_p.shape[0]
+    g = g_pad - layout._laser_gap()[1]
+    (n_p, n_c), cap_p = layout.n[4:], layout.cap[4]
+    gidx = np.asarray(bl.gidx)
+    gidx = np.where(gidx >= g, g, gidx)  # padded lasers' columns are never an observation's
+    pidx = np.asarray(bl.pidx)
+    pidx = np.where(pidx >= nb_pad, n_p + n_c, np.where(pidx >= cap_p, pidx - cap_p + n_p, pidx))
+    blocks = _Blocks(
+        *(layout.unpad_observations(x) for x in (bl.g, bl.h, bl.m)),
+        layout.unpad_observations(gidx),
+        layout.unpad_observations(pidx),
+    )
+    hessian = _Hessian(
+        layout.unpad_glob(hs.A, axes=(0, 1)),
+        layout.unpad_blocks(layout.unpad_glob(hs.B, axes=(1,))),
+        layout.unpad_blocks(hs.D),
+    )
+    return _Linearised(blocks, hessian, layout.unpad_glob(lin.step_g), layout.unpad_blocks(lin.step_p))
+
+
 def stationary_point(
     params: Params, pk: Packed, masks: Masks, loss: str, scale, kind_weight=None, max_steps: int = 6, tol: float = 1e-10
 ) -> tuple[Params, int]:
@@ -267,6 +330,7 @@ def stationary_point(
     point and the number of steps taken; raises ``ValueError`` when a step does not
     shrink (``params`` was not near a minimum).
     """
+    layout, params, pk, masks = _padded(params, pk, masks)
     last = np.inf
     for k in range(max_steps):
         lin = _linearised(params, pk, masks, loss, scale, kind_weight)
@@ -274,9 +338,9 @@ def stationary_point(
         if not np.isfinite(size) or (k >= 2 and size > 0.5 * last):
             raise ValueError(f"Newton from the given solution does not converge (step {size:.3g} after {last:.3g})")
         if size <= tol:
-            return params, k
+            return unpad_params(layout, params), k
         params, last = params.retract(lin.step_g, lin.step_p), size
-    return params, max_steps
+    return unpad_params(layout, params), max_steps
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(3,))
@@ -366,7 +430,8 @@ def sensitivity(result, x_ref: np.ndarray | None = None) -> Sensitivity:
     arr = pk.arrays()
     kw = kind_weights()  # the final pass's kind weights
     params, steps = stationary_point(result.params, arr, result.masks, result.loss, result.scale, kw)
-    lin = _linearised(params, arr, result.masks, result.loss, result.scale, kw)
+    layout, *padded = _padded(params, arr, result.masks)
+    lin = _unpadded(layout, _linearised(*padded, result.loss, result.scale, kw))
     if x_ref is None:
         x_ref = laser_working_points(params.rig, params.poses, pk)
     xg, _ = _pixel_columns(lin, result.masks)
