@@ -131,15 +131,15 @@ def _observation_blocks(params: Params, pk: Packed, loss: str, scale, kind_weigh
     def index(r, at):
         return r[at].astype(int)
 
+    def posed(f):
+        """The blocks of a row ``[data 5 | pose]`` of a kind seen from a pose."""
+        return lambda r, R, t: _second_order(f)(r[:5], R[index(r, 5)], t[index(r, 5)])
+
     out = []
     # dots: [camera, mirror | pose], data [pixel | board point]
     f = residual_grad(lambda d, R, t, xb, px: _lm._dot(d, cam, mir, R, t, xb, px), Kind.DOT, N_CM, True, True)
     rows = jnp.concatenate([pk.dot_pixels, pk.dot_points, idx(pk.dot_pose)], axis=1)
-
-    def dot(r, R, t):
-        return _second_order(f)(r[:5], R[index(r, 5)], t[index(r, 5)])
-
-    gr, h, m = blocks(dot, pk.counts[Kind.DOT], rows, params.poses.R, params.poses.t)
+    gr, h, m = blocks(posed(f), pk.counts[Kind.DOT], rows, params.poses.R, params.poses.t)
     n = rows.shape[0]
     out.append((gr, h, m, jnp.broadcast_to(jnp.concatenate([cm, none]), (n, N_G)), pk.dot_pose))
     # spots: [camera, mirror, laser | pose], data [pixel | (none)]
@@ -163,11 +163,7 @@ def _observation_blocks(params: Params, pk: Packed, loss: str, scale, kind_weigh
     # chessboard corners: [camera | direct-view pose], data [pixel | board point]
     f = residual_grad(lambda d, R, t, xb, px: _lm._chess(d, cam, R, t, xb, px), Kind.CHESS, N_CAM, True, True)
     rows = jnp.concatenate([pk.chess_pixels, pk.chess_points, idx(pk.chess_pose)], axis=1)
-
-    def corner(r, R, t):
-        return _second_order(f)(r[:5], R[index(r, 5)], t[index(r, 5)])
-
-    gr, h, m = blocks(corner, pk.counts[Kind.CHESS], rows, params.chess.R, params.chess.t)
+    gr, h, m = blocks(posed(f), pk.counts[Kind.CHESS], rows, params.chess.R, params.chess.t)
     n = rows.shape[0]
     gi = jnp.broadcast_to(jnp.concatenate([jnp.arange(N_CAM), jnp.full(N_G - N_CAM, g)]), (n, N_G))
     out.append((gr, h, m, gi, n_p + pk.chess_pose))
