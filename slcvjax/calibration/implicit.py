@@ -290,12 +290,12 @@ def _padded(params: Params, pk: Packed, masks: Masks) -> tuple[Layout, Params, P
     return layout, pad_params(layout, params), layout.pad_packed(pk), pad_masks(layout, masks)
 
 
-def _unpadded(layout: Layout, lin: _Linearised) -> _Linearised:
-    """A padded problem's linearisation restricted to its real observations, parameters and pose
-    blocks, the indices renumbered (a column or block that is none: the real sizes)."""
+def _unpadded(layout: Layout, lin: _Linearised, g: int) -> _Linearised:
+    """A padded problem's linearisation restricted to its real observations, its ``g`` real global
+    parameters and its real pose blocks, the indices renumbered (a column or block that is none:
+    the real sizes)."""
     bl, hs = lin.blocks, lin.hessian
-    g_pad, nb_pad = lin.step_g.shape[0], lin.step_p.shape[0]
-    g = g_pad - layout._laser_gap()[1]
+    nb_pad = lin.step_p.shape[0]
     (n_p, n_c), cap_p = layout.n[4:], layout.cap[4]
     gidx = np.asarray(bl.gidx)
     gidx = np.where(gidx >= g, g, gidx)  # padded lasers' columns are never an observation's
@@ -427,7 +427,7 @@ def sensitivity(result, x_ref: np.ndarray | None = None) -> Sensitivity:
     kw = kind_weights()  # the final pass's kind weights
     params, steps = stationary_point(result.params, arr, result.masks, result.loss, result.scale, kw)
     layout, *padded = _padded(params, arr, result.masks)
-    lin = _unpadded(layout, _linearised(*padded, result.loss, result.scale, kw))
+    lin = _unpadded(layout, _linearised(*padded, result.loss, result.scale, kw), params.rig.tangent_dim)
     if x_ref is None:
         x_ref = laser_working_points(params.rig, params.poses, pk)
     xg, _ = _pixel_columns(lin, result.masks)
