@@ -326,17 +326,26 @@ def stationary_point(
     point and the number of steps taken; raises ``ValueError`` when a step does not
     shrink (``params`` was not near a minimum).
     """
+    layout, params, _, steps = _newton(params, pk, masks, loss, scale, kind_weight, max_steps, tol)
+    return unpad_params(layout, params), steps
+
+
+def _newton(params: Params, pk: Packed, masks: Masks, loss: str, scale, kind_weight, max_steps: int, tol: float):
+    """:func:`stationary_point` on the padded problem: its layout, the padded point, the
+    linearisation there (the sensitivity's) and the number of steps."""
     layout, params, pk, masks = _padded(params, pk, masks)
     last = np.inf
-    for k in range(max_steps):
+    for k in range(max_steps + 1):
         lin = _linearised(params, pk, masks, loss, scale, kind_weight)
+        if k == max_steps:
+            break
         size = float(jnp.maximum(jnp.max(jnp.abs(lin.step_g)), jnp.max(jnp.abs(lin.step_p), initial=0.0)))
         if not np.isfinite(size) or (k >= 2 and size > 0.5 * last):
             raise ValueError(f"Newton from the given solution does not converge (step {size:.3g} after {last:.3g})")
         if size <= tol:
-            return unpad_params(layout, params), k
+            return layout, params, lin, k
         params, last = params.retract(lin.step_g, lin.step_p), size
-    return unpad_params(layout, params), max_steps
+    return layout, params, lin, max_steps
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(3,))
@@ -425,9 +434,9 @@ def sensitivity(result, x_ref: np.ndarray | None = None) -> Sensitivity:
     pk = result.packed
     arr = pk.arrays()
     kw = kind_weights()  # the final pass's kind weights
-    params, steps = stationary_point(result.params, arr, result.masks, result.loss, result.scale, kw)
-    layout, *padded = _padded(params, arr, result.masks)
-    lin = _unpadded(layout, _linearised(*padded, result.loss, result.scale, kw), params.rig.tangent_dim)
+    layout, padded, lin, steps = _newton(result.params, arr, result.masks, result.loss, result.scale, kw, 6, 1e-10)
+    params = unpad_params(layout, padded)
+    lin = _unpadded(layout, lin, params.rig.tangent_dim)
     if x_ref is None:
         x_ref = laser_working_points(params.rig, params.poses, pk)
     xg, _ = _pixel_columns(lin, result.masks)
