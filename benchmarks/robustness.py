@@ -48,6 +48,7 @@ from slcvjax import (
     laser_working_points,
     make_scene,
     report,
+    require_determined,
     simulate,
 )
 
@@ -171,7 +172,7 @@ def one(n_lasers: int, n_views: int, mode: str, share: float, seed: int, noise: 
     base = {"mode": mode, "share": share, "seed": seed, "corrupted": len(wrong)}
     t0 = time.perf_counter()
     try:
-        res = calibrate(obs)
+        res = require_determined(calibrate(obs))
     except CalibrationError as e:
         return base | {"refused": str(e), "seconds": time.perf_counter() - t0}
     seconds = time.perf_counter() - t0

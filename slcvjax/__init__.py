@@ -44,6 +44,7 @@ from .calibration.calibrate import (  # noqa: E402
     laser_working_points,
     report,
     reprojections,
+    require_determined,
     to_calibration,
 )
 from .calibration.implicit import (  # noqa: E402
@@ -233,6 +234,7 @@ __all__ = [
     "label_by_lines",
     "laser_design_document",
     "laser_errors",
+    "require_determined",
     "laser_spot_cam",
     "laser_std",
     "laser_working_points",

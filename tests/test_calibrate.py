@@ -24,9 +24,16 @@ from slcvjax.calibration.calibrate import (
     report,
     to_calibration,
 )
-from slcvjax.calibration.staged import CalibrationError, calibrate_intrinsics, staged
+from slcvjax.calibration.staged import calibrate_intrinsics, staged
 from slcvjax.cli.common import print_report
-from slcvjax.observations.formats import observations_to_json, read_calibration, write_observations
+from slcvjax.geometry.rig import laser_columns
+from slcvjax.images.pipe import measure_observations
+from slcvjax.observations.formats import (
+    observations_to_json,
+    read_calibration,
+    write_calibration,
+    write_observations,
+)
 from slcvjax.observations.problem import Layout, pack, stack_poses
 from slcvjax.observations.simulate import make_scene, simulate
 
@@ -352,12 +359,39 @@ def test_outliers_are_flagged_and_do_not_spoil_the_fit(scene):
     assert np.sqrt(np.mean(ang**2)) < 1.3 * np.sqrt(np.mean(ang0**2))
 
 
-def test_a_laser_without_enough_spots_is_named(scene):
-    obs, _ = simulate(scene, noise=0.3, seed=0)
+def test_a_laser_without_enough_spots_is_held_undetermined(scene, tmp_path):
+    """Laser 2 seen in one view only (one board plane: no line): the calibration holds it, says
+    so with no std, leaves its spot out, fits the other lasers as the truth has them, writes it
+    as null, and measuring refuses its spots."""
+    obs, truth = simulate(scene, noise=0.3, seed=0)
     for v in obs.views[1:]:
         v.spots = [s for s in v.spots if s.laser != 2]
-    with pytest.raises(CalibrationError, match="laser 2"):
-        calibrate(obs)
+    res = calibrate(obs)
+    assert res.undetermined_lasers == (2,)
+    assert not np.any(np.asarray(res.masks.glob)[laser_columns(2)])  # held
+    assert not np.any(np.asarray(res.packed.spot_laser)[: int(res.packed.counts[1])] == 2)  # its spots left out
+    assert any(r["laser"] == 2 and "undetermined" in r["reason"] for r in res.repairs)
+    cal = to_calibration(res, obs)
+    unc = cal.extra["uncertainty"]["lasers"]
+    assert unc[2]["status"].startswith("undetermined") and unc[2]["position_std_mm"] is None
+    others = [i for i in range(truth.rig.lasers.n) if i != 2]
+    assert all(unc[i]["position_std_mm"] > 0 and "status" not in unc[i] for i in others)
+    # the other lasers against the simulator's truth, in units of their reported std
+    x_ref = np.array([las["working_point"] or [0.0, 0.0, 0.0] for las in unc])  # laser 2 has none
+    pos, ang = laser_errors(res.rig, truth.rig, x_ref)
+    z_pos = pos[others] / np.array([unc[i]["position_std_mm"] for i in others])
+    z_ang = np.degrees(ang[others]) / np.array([unc[i]["direction_std_deg"] for i in others])
+    assert np.sqrt(np.mean(z_pos**2)) < 3.0 and np.sqrt(np.mean(z_ang**2)) < 3.0
+    write_calibration(tmp_path / "cal.json", cal)
+    doc = json.loads((tmp_path / "cal.json").read_text())
+    assert doc["lasers"][2]["point"] is None and doc["lasers"][2]["direction"] is None
+    back = read_calibration(tmp_path / "cal.json")
+    assert back.undetermined_lasers == (2,)
+    views = measure_observations(back.rig, obs, 0.3, None, back.undetermined_lasers)
+    assert not any(np.any(vp.lasers == 2) for vp in views)
+    held = [m for vp in views for m in vp.missing if m[1] == 2]
+    assert len(held) == sum(s.laser == 2 for v in obs.views for s in v.spots) and "undetermined" in held[0][2]
+    assert sum(vp.lasers.size for vp in views) > 0
 
 
 def test_a_calibration_stopped_short_says_it_is_not_a_minimum(scene, capsys):

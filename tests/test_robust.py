@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from slcvjax.calibration.calibrate import calibrate, cramer_rao, laser_errors, laser_std, report
+from slcvjax.calibration.calibrate import calibrate, cramer_rao, laser_errors, laser_std, report, require_determined
 from slcvjax.calibration.staged import CalibrationError, fit_lasers
 from slcvjax.geometry.rig import laser_columns
 from slcvjax.observations.problem import pack
@@ -143,14 +143,33 @@ def test_lasers_by_consensus_survive_wrong_labels(noisy):
     assert np.all(fit.labels[[i for i, src in enumerate(pk.spot_src) if src in moved]] >= 0)
 
 
-def test_a_laser_whose_spots_all_belong_to_another_is_refused(noisy):
-    obs = copy.deepcopy(noisy[0])
+def test_a_laser_whose_spots_all_belong_to_another_is_held_undetermined(noisy):
+    """Every spot of laser 2 labelled 3: laser 2 has no spot (undetermined, held); laser 3 keeps
+    the spots of one true laser only, leaves the others out, and its line is that laser's
+    within its reported std."""
+    obs, truth = copy.deepcopy(noisy[0]), noisy[1]
+    true_laser = {}
     for v in obs.views:
-        for s in v.spots:
+        for j, s in enumerate(v.spots):
+            true_laser[v.name, j] = s.laser
             if s.laser == 2:
                 s.laser = 3
-    with pytest.raises(CalibrationError, match="laser 2"):
-        calibrate(obs)
+    res = calibrate(obs)
+    assert res.undetermined_lasers == (2,)
+    with pytest.raises(CalibrationError, match="laser 2: undetermined"):
+        require_determined(res)
+    pk = res.packed
+    n_s = int(pk.counts[1])
+    labels = np.asarray(pk.spot_laser)[:n_s]
+    kept = {true_laser[obs.views[v].name, j] for (v, j), lab in zip(pk.spot_src, labels, strict=True) if lab == 3}
+    assert len(kept) == 1
+    (k,) = kept
+    both = sum(t in (2, 3) for t in true_laser.values())
+    kept_n = sum(t == k for t in true_laser.values())
+    assert sum(r["laser"] == 3 and r["action"] == "left out" for r in res.repairs) >= both - kept_n - 1
+    d3, dk = np.asarray(res.rig.lasers.directions[3]), np.asarray(truth.rig.lasers.directions[k])
+    std_deg = report(res, obs)["uncertainty"]["lasers"][3]["direction_std_deg"]
+    assert np.degrees(np.arccos(min(1.0, abs(float(d3 @ dk))))) < 4.0 * std_deg
 
 
 @pytest.mark.slow

@@ -400,6 +400,8 @@ class CalibrationResult:
     kind_sigma: dict = field(default_factory=dict)  # per kind noise sigma (px) over its free rows (kind_noise)
     repairs: list = field(default_factory=list)  # observations relabelled or left out (see :func:`_repair`)
     box: dict | None = None  # the rigid box model's boards, where it was used (see :func:`_rigid_refine`)
+    # lasers whose spots cannot fix a line: held at a placeholder, their spots left out (fit_lasers)
+    undetermined_lasers: tuple[int, ...] = ()
 
     @property
     def rig(self) -> Rig:
@@ -410,6 +412,15 @@ class CalibrationResult:
         """Whether the last pass, the one whose solution this is, converged (not stopped at the
         step limit or stalled): only then are ``params`` a minimum and ``cov`` its covariance."""
         return bool(self.passes) and self.passes[-1].converged
+
+
+def require_determined(result: CalibrationResult) -> CalibrationResult:
+    """``result``, or :class:`CalibrationError` naming its undetermined lasers: for the
+    experiments that score every laser against a truth (a held laser has no error to score)."""
+    if result.undetermined_lasers:
+        held = ", ".join(map(str, result.undetermined_lasers))
+        raise CalibrationError(f"laser {held}: undetermined (its spots cannot fix a line)")
+    return result
 
 
 def _chess_start(obs: Observations, pk: Packed, cam: Camera, known: dict[int, Pose]) -> list[Pose]:
@@ -815,9 +826,16 @@ class _Trial:
         else:
             chess_stack = stack_poses(chess)
         self.params = Params(st.rig, stack_poses(st.poses), chess_stack)
-        self.masks = make_masks(self.params, set(freeze), estimate)
+        self.freeze, self.estimate = set(freeze), estimate
+        # lasers held because their spots cannot fix a line (found again where B refits the lasers)
+        self.undetermined: tuple[int, ...] = st.undetermined
+        self.masks = make_masks(self.params, set(freeze), estimate, held_lasers=st.undetermined)
         self.mask_a = make_masks(self.params, set(freeze) | {"lasers"}, estimate)
         self.fine = fine
+        if st.undetermined and "lasers" in freeze:  # no refit: their spots go now
+            n_d, n_s = int(self.pk.counts[Kind.DOT]), int(self.pk.counts[Kind.SPOT])
+            held = np.isin(np.asarray(self.pk.spot_laser)[:n_s], st.undetermined)
+            self.pk = self.pk.select(np.ones(n_d, bool), ~held)
         self.use(self.pk)
         self.passes: list[JointPass] = []
         self.repairs: list[dict] = []
@@ -949,6 +967,8 @@ def _calibrate_lockstep(
             p = tr.params
             fit = fit_lasers(p.rig.camera, p.rig.mirror, tr.pk, unstack_poses(p.poses), tr.obs.n_lasers)
             tr.params = Params(p.rig.with_lasers(fit.lasers), p.poses, p.chess)
+            tr.undetermined = tuple(int(i) for i in np.flatnonzero(fit.undetermined))
+            tr.masks = make_masks(tr.params, tr.freeze, tr.estimate, held_lasers=tr.undetermined)
             _relabel_spots(tr, fit)
     run(PASS_B, every)
     if "lasers" not in freeze:
@@ -1005,6 +1025,7 @@ def _calibrate_lockstep(
                 {"staged_s": tr.t_staged, "total_s": time.perf_counter() - tr.t0},
                 dict(zip(KIND_NAMES, sigmas.tolist(), strict=True)),
                 tr.repairs,
+                undetermined_lasers=tr.undetermined,
             )
         )
     return out
@@ -1244,6 +1265,8 @@ def _relabel_spots(tr: "_Trial", fit) -> None:
         if new >= 0:
             item |= {"new_laser": new, "new_residual_px": float(fit.residual[i, new])}
             item["reason"] = f"lies on laser {new}'s line, not on its own (threshold {fit.threshold:.3g} px)"
+        elif fit.undetermined[own[i]]:
+            item["reason"] = f"laser {own[i]} is undetermined: its spots cannot fix a line"
         else:
             item["reason"] = f"lies on no laser's line, or on more than one (threshold {fit.threshold:.3g} px)"
         tr.repairs.append(item)
@@ -1867,6 +1890,8 @@ def report(result: CalibrationResult, obs: Observations) -> dict:
     sd = std_of_variance(np.diag(cov))
     x_ref = laser_working_points(result.rig, result.params.poses, result.packed)
     pos, ang = laser_std(result.rig, cov, x_ref)
+    held = list(result.undetermined_lasers)
+    pos[held], ang[held] = np.nan, np.nan  # held at a placeholder: a std of 0 would claim it known
     last = result.passes[-1] if result.passes else None
     uncertainty = {
         "converged": result.converged,
@@ -1887,13 +1912,15 @@ def report(result: CalibrationResult, obs: Observations) -> dict:
         | ({"conic_constant": _finite_or_none(sd[SHAPE_COLUMN])} if float(result.masks.glob[SHAPE_COLUMN]) else {}),
         "lasers": [
             {
-                "working_point": x_ref[i].tolist(),
-                "working_range_mm": float(np.linalg.norm(x_ref[i])),
+                "working_point": None if i in held else x_ref[i].tolist(),
+                "working_range_mm": None if i in held else float(np.linalg.norm(x_ref[i])),
                 "position_std_mm": _finite_or_none(pos[i]),
                 "direction_std_deg": _finite_or_none(np.degrees(ang[i])),
             }
             | (
-                {}
+                {"status": "undetermined: its spots cannot fix a line (held; its spots are left out)"}
+                if i in held
+                else {}
                 if np.isfinite(pos[i]) and np.isfinite(ang[i])
                 else {"status": "undetermined: its covariance is not positive (the data do not fix this laser)"}
             )
@@ -1928,10 +1955,10 @@ def _box_json(box: dict) -> dict:
     }
 
 
-def _rig_json(rig: Rig) -> dict:
+def _rig_json(rig: Rig, undetermined: tuple[int, ...] = ()) -> dict:
     from ..observations.formats import calibration_to_json
 
-    doc = calibration_to_json(Calibration(rig))
+    doc = calibration_to_json(Calibration(rig, undetermined_lasers=undetermined))
     return {k: doc[k] for k in ("camera", "mirror", "lasers")}
 
 
@@ -1948,14 +1975,14 @@ def to_calibration(result: CalibrationResult, obs: Observations) -> Calibration:
     st = result.staged
     stages = {
         "staged": {
-            **_rig_json(st.rig),
+            **_rig_json(st.rig, st.undetermined),
             "reports": [
                 {"stage": r.name, "rms": _finite_or_none(r.rms), "unit": r.unit, "notes": r.notes} for r in st.reports
             ],
         },
         "joint": {"passes": [p.__dict__ for p in result.passes], "timings_s": result.timings},
     }
-    return Calibration(result.rig, board_poses, cvp, {**rep, "stages": stages})
+    return Calibration(result.rig, board_poses, cvp, {**rep, "stages": stages}, result.undetermined_lasers)
 
 
 _project_board = jax.jit(project_board_points)

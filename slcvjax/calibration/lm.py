@@ -759,9 +759,16 @@ class Masks(eqx.Module):
     blocks: Float[Array, " NB"]
 
 
-def make_masks(params: Params, freeze: frozenset | set | tuple = (), estimate: frozenset | set | tuple = ()) -> Masks:
+def make_masks(
+    params: Params,
+    freeze: frozenset | set | tuple = (),
+    estimate: frozenset | set | tuple = (),
+    held_lasers: tuple[int, ...] = (),
+) -> Masks:
     """Freeze masks from block names: camera, mirror, mirror_tilt (the mirror's axis only),
-    lasers, poses, chess_poses.  The mirror's shape column (its conic constant) is estimated only
+    lasers, poses, chess_poses; ``held_lasers``: the indices of single lasers held besides
+    (undetermined ones: :func:`slcvjax.calibration.staged.fit_lasers`).  The mirror's shape
+    column (its conic constant) is estimated only
     where ``estimate`` names ``shape``, the mirror is not frozen and is a conic one.  Before a
     telecentric camera the mirror's depth (its apex's z) is held: it is the gauge of a view
     along parallel rays (mirror and boards slide along them together unseen)."""
@@ -776,6 +783,11 @@ def make_masks(params: Params, freeze: frozenset | set | tuple = (), estimate: f
         raise ValueError(f"unknown parameter block(s) to estimate: {', '.join(sorted(bad))} (known: shape)")
     shape_free = "shape" in estimate and "mirror" not in freeze and isinstance(params.rig.mirror, ConicMirror)
     n_l = params.rig.lasers.n
+    bad_l = [i for i in held_lasers if not 0 <= i < n_l]
+    if bad_l:
+        raise ValueError(f"held laser {bad_l[0]} is not one of the rig's {n_l} lasers")
+    las = np.full((n_l, N_LAS), 0.0 if "lasers" in freeze else 1.0)
+    las[list(held_lasers)] = 0.0
     glob = np.concatenate(
         [
             np.full(N_CAM, 0.0 if "camera" in freeze else 1.0),
@@ -783,7 +795,7 @@ def make_masks(params: Params, freeze: frozenset | set | tuple = (), estimate: f
             [0.0 if "mirror" in freeze or params.rig.camera.telecentric else 1.0],
             np.full(2, 0.0 if {"mirror", "mirror_tilt"} & set(freeze) else 1.0),
             [1.0 if shape_free else 0.0],
-            np.full(N_LAS * n_l, 0.0 if "lasers" in freeze else 1.0),
+            las.ravel(),
         ]
     )
     p, c = params.poses.t.shape[0], params.chess.t.shape[0]

@@ -419,6 +419,7 @@ class LaserFit:
     labels: np.ndarray
     residual: np.ndarray
     threshold: float
+    undetermined: np.ndarray  # (L,) bool: lasers whose spots cannot fix a line (held, see fit_lasers)
 
 
 def spot_line_residuals(org, dirs, metric, normals, origins, points, directions) -> np.ndarray:
@@ -498,14 +499,16 @@ def fit_lasers(
     the lines are fitted again to the spots they keep, twice.  ``repair=False``: every spot
     keeps its label (a plain least-squares line per laser).
 
-    Raises :class:`CalibrationError` naming a laser whose consistent points cannot fix a
-    line (fewer than 2 points, or all within 1 mm of each other).  With no lasers, no lines.
+    A laser whose consistent points cannot fix a line (fewer than 2, or all within 1 mm of each
+    other) is undetermined (``LaserFit.undetermined``, the reason in the report's notes): it
+    gets a placeholder line (:func:`_placeholder_line`) that nothing is fitted to, its spots are
+    left out and no spot is given to it.  With no lasers, no lines.
     """
     if n_lasers == 0:
         n_s = int(pk.counts[Kind.SPOT])
         none = Lasers.create(np.zeros((0, 3)), np.zeros((0, 3)))
         report = StageReport("lasers", float("nan"), "px", ["no lasers"])
-        return LaserFit(none, report, np.full(n_s, -1), np.zeros((n_s, 0)), float("inf"))
+        return LaserFit(none, report, np.full(n_s, -1), np.zeros((n_s, 0)), float("inf"), np.zeros(0, bool))
     pts, usable, (org, dirs, metric, normals, origins) = _spot_points(camera, mirror, pk, poses)
     own = np.asarray(pk.spot_laser)[: org.shape[0]]
 
@@ -514,15 +517,18 @@ def fit_lasers(
 
     def fit(labels, consensus: bool):
         points, directions = np.zeros((n_lasers, 3)), np.zeros((n_lasers, 3))
+        why: dict[int, str] = {}
         for laser in range(n_lasers):
             idx = np.flatnonzero(usable & (labels == laser))
             p = pts[idx]
             spread = np.linalg.svd(p - p.mean(axis=0), compute_uv=False)[0] / np.sqrt(len(p)) if len(p) >= 2 else 0.0
             if len(p) < 2 or spread < 0.5:
-                raise CalibrationError(
-                    f"laser {laser}: {len(p)} consistent spot point(s) spread over {2 * spread:.2g} mm cannot fix "
-                    "a line (need spots on at least 2 planes at different distances)"
+                why[laser] = (
+                    f"laser {laser} undetermined: {len(p)} consistent spot point(s) spread over {2 * spread:.2g} mm "
+                    "cannot fix a line (it needs spots on at least 2 planes at different distances); it is held "
+                    "and its spots are left out"
                 )
+                continue
             if consensus and len(p) > 2:
                 a, b = np.triu_indices(len(p), 1)
                 far = np.linalg.norm(p[a] - p[b], axis=1) > 1.0
@@ -534,13 +540,16 @@ def fit_lasers(
                 if inl.sum() >= 2:
                     p = p[inl]
             points[laser], directions[laser] = _line_through(p)
-        return points, directions
+        for laser in why:
+            points[laser], directions[laser] = _placeholder_line(pts[usable & (labels == laser)], directions, why)
+        return points, directions, why
 
     labels = own.copy()
-    points, directions = fit(labels, consensus=repair)
+    points, directions, why = fit(labels, consensus=repair)
     threshold = np.inf
     for _ in range(2 if repair else 0):
         r = residuals(points, directions)
+        r[:, list(why)] = np.inf  # no spot is given to an undetermined laser's placeholder
         r_own = r[np.arange(len(own)), own]
         finite = usable & np.isfinite(r_own)
         sigma = float(np.median(r_own[finite])) / RAYLEIGH_MEDIAN if finite.any() else 0.0
@@ -554,17 +563,32 @@ def fit_lasers(
         keep = (labels < 0) & (near.sum(axis=1) == 0) & (r_own <= CONSENSUS_PX)
         labels[keep] = own[keep]
         labels[~usable] = -1
-        points, directions = fit(labels, consensus=False)
+        points, directions, why = fit(labels, consensus=False)
+    undetermined = np.isin(np.arange(n_lasers), list(why))
     lasers = Lasers.create(points, directions).canonical()
     r = residuals(np.asarray(lasers.points), np.asarray(lasers.directions))
+    r[:, undetermined] = np.inf
+    labels = np.where((labels >= 0) & undetermined[np.maximum(labels, 0)], -1, labels)
     kept = labels >= 0
     resid = r[np.flatnonzero(kept), labels[kept]]
-    notes = [f"{n_lasers} lasers from {int(kept.sum())} spots"]
-    n_moved, n_out = int(np.sum(kept & (labels != own))), int(np.sum(usable & ~kept))
+    notes = [f"{n_lasers - len(why)} of {n_lasers} lasers from {int(kept.sum())} spots"]
+    n_moved = int(np.sum(kept & (labels != own)))
+    n_out = int(np.sum(usable & ~kept & ~undetermined[own]))
     if n_moved or n_out:
         notes.append(f"{n_moved} spot(s) given another laser, {n_out} left out (near no line, or near two)")
+    notes += [why[i] for i in sorted(why)]
     report = StageReport("lasers", float(np.sqrt(np.mean(np.square(resid)))) if resid.size else 0.0, "px", notes)
-    return LaserFit(lasers, report, labels, r, float(threshold))
+    return LaserFit(lasers, report, labels, r, float(threshold), undetermined)
+
+
+def _placeholder_line(p: np.ndarray, directions: np.ndarray, undetermined) -> tuple[np.ndarray, np.ndarray]:
+    """A line for an undetermined laser: through its points' centroid (the camera's centre where
+    it has none), along the mean direction of the lasers that are determined (the camera's axis
+    where none is).  Nothing is fitted to it: the laser is held and its spots are left out."""
+    known = np.delete(directions, list(undetermined), axis=0)
+    d = known.sum(axis=0) if known.size else np.array([0.0, 0.0, 1.0])
+    d = d / np.linalg.norm(d) if np.linalg.norm(d) > 1e-9 else np.array([0.0, 0.0, 1.0])
+    return (p.mean(axis=0) if len(p) else np.zeros(3)), d
 
 
 # ----------------------------------------------------------------------------- the whole staged pipeline
@@ -581,6 +605,7 @@ class Staged:
     chess_poses: dict[int, Pose]
     reports: list[StageReport]
     packed: Packed | None = None
+    undetermined: tuple[int, ...] = ()  # lasers whose spots cannot fix a line (see fit_lasers)
 
     @property
     def rig(self) -> Rig:
@@ -629,7 +654,8 @@ def staged(obs: Observations, camera: Camera | None = None, pk: Packed | None = 
         pk = pack(obs)
         rep_p.notes.append(f"{n_set} of {n_open} spots without a board put on the first board plane their ray meets")
     fit = fit_lasers(camera, mirror, pk, poses, obs.n_lasers)
-    return Staged(camera, mirror, fit.lasers, poses, chess, reports + [rep_m, rep_p, fit.report], pk)
+    undetermined = tuple(int(i) for i in np.flatnonzero(fit.undetermined))
+    return Staged(camera, mirror, fit.lasers, poses, chess, reports + [rep_m, rep_p, fit.report], pk, undetermined)
 
 
 def assign_spot_boards(

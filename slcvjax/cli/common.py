@@ -99,6 +99,9 @@ def print_report(cal, name: str = "") -> None:
             f"std <= {worst:.3g} mm, {len(box['left_out'])} board pose(s) left out (do not fit the box)"
         )
     for i, las in enumerate(unc["lasers"]):
+        if las["working_range_mm"] is None:
+            print(f"laser {i:2d}   {las.get('status', 'undetermined')}")
+            continue
         print(
             f"laser {i:2d}   std {fmt(las['position_std_mm'])} mm at {las['working_range_mm']:.0f} mm, "
             f"direction {fmt(las['direction_std_deg'])} deg" + (f"  ({las['status']})" if "status" in las else "")

@@ -86,12 +86,23 @@ def run(args) -> int:
     else:
         print(f"bound at sigma {sigma:.3f} px")
     print("laser  error (mm, deg)    reported std (mm, deg)   bound std (mm, deg)   staged error (mm, deg)")
+    held = list(res.undetermined_lasers)
     for i in range(len(pos)):
+        if i in held:
+            print(f"{i:5d}  undetermined: its spots cannot fix a line (held; left out of the RMS below)")
+            continue
         print(
             f"{i:5d}  {pos[i]:6.3f} {np.degrees(ang[i]):6.3f}     {fmt(unc[i]['position_std_mm']):>6s} "
             f"{fmt(unc[i]['direction_std_deg']):>6s}          {bound['position_std_mm'][i]:6.3f} "
             f"{np.degrees(bound['direction_std_rad'][i]):6.3f}       {pos_s[i]:7.3f} {np.degrees(ang_s[i]):6.3f}"
         )
+    if held:  # the figures below over the lasers the data fix
+        keep = np.setdiff1d(np.arange(len(pos)), held)
+        pos, ang, pos_s, ang_s = pos[keep], ang[keep], pos_s[keep], ang_s[keep]
+        bound = bound | {
+            "position_rms_mm": float(np.sqrt(np.mean(np.square(bound["position_std_mm"][keep])))),
+            "direction_rms_rad": float(np.sqrt(np.mean(np.square(bound["direction_std_rad"][keep])))),
+        }
     rms = lambda x: float(np.sqrt(np.mean(np.square(x))))  # noqa: E731
     print(
         f"RMS    {rms(pos):6.3f} {np.degrees(rms(ang)):6.3f}     bound {bound['position_rms_mm']:.3f} "
@@ -118,18 +129,32 @@ def run(args) -> int:
         render_pipe(pipe_sc, out / "pipe_images", opts, progress=sys.stderr.isatty())
         # the demo knows its laser's spot size (the renderer's): the centroids are corrected for it
         observed, problems = spots_from_images(
-            out / "pipe_images", res.rig, sigma_cal, rig_cov, spot_sigma_mm=opts.spot_sigma_mm
+            out / "pipe_images",
+            res.rig,
+            sigma_cal,
+            rig_cov,
+            spot_sigma_mm=opts.spot_sigma_mm,
+            undetermined=res.undetermined_lasers,
         )
         for name, probs in ((k, v) for k, v in problems.items() if v):
             print(f"  {name}: " + "; ".join(probs))
         pipe = pipe_experiment(
-            res.rig, pipe_sc, args.noise, args.seed, pixel_sigma=sigma_cal, rig_cov=rig_cov, observed=observed
+            res.rig,
+            pipe_sc,
+            args.noise,
+            args.seed,
+            pixel_sigma=sigma_cal,
+            rig_cov=rig_cov,
+            observed=observed,
+            undetermined=res.undetermined_lasers,
         )
         pixel_note = sigma_cal
     else:
         print(f"[{next(step)}/{steps}] measure: the sensor in a 150 mm pipe at 16 poses, {args.noise:g} px, "
               "with this calibration", flush=True)  # fmt: skip
-        pipe = pipe_experiment(res.rig, pipe_sc, args.noise, args.seed, rig_cov=rig_cov)
+        pipe = pipe_experiment(
+            res.rig, pipe_sc, args.noise, args.seed, rig_cov=rig_cov, undetermined=res.undetermined_lasers
+        )
         pixel_note = args.noise
     pipe_files = write_pipe(out, pipe, "pipe_points.json", pixel_note)
     pipe_report(pipe)

@@ -31,7 +31,9 @@ def run(args) -> int:
     if Path(args.input).is_dir():
         from ..images.pipe import spots_from_images
 
-        obs, problems = spots_from_images(args.input, cal.rig, sigma, cov, args.spot_mm, _parse_axis(args.axis))
+        obs, problems = spots_from_images(
+            args.input, cal.rig, sigma, cov, args.spot_mm, _parse_axis(args.axis), cal.undetermined_lasers
+        )
         bad = {k: v for k, v in problems.items() if v}
         n = sum(len(v.spots) for v in obs.views)
         print(f"{args.input}: {n} spots in {len(obs.views)} images, labelled by the calibration's laser lines"
@@ -46,7 +48,10 @@ def run(args) -> int:
             f"{cal.rig.lasers.n} lasers"
         )
     axis = _parse_axis(args.axis)
-    views = measure_observations(cal.rig, obs, sigma, cov)
+    if cal.undetermined_lasers:
+        held = ", ".join(map(str, cal.undetermined_lasers))
+        print(f"{args.calibration}: laser(s) {held} undetermined (the data did not fix their lines): no points")
+    views = measure_observations(cal.rig, obs, sigma, cov, cal.undetermined_lasers)
     names = [v.name for v in obs.views]
     circles = None
     if args.fit_circle:

@@ -13,11 +13,11 @@ def run(args) -> int:
 
     t0 = time.perf_counter()
     out = Path(args.out)
-    rig_cov = None
+    rig_cov, undetermined = None, ()
     if args.calibration:
         cal = read_calibration(args.calibration)
         _, rig_cov = measurement_inputs(args.calibration, cal)
-        rig = cal.rig
+        rig, undetermined = cal.rig, cal.undetermined_lasers
         truth = paper_rig(rig.lasers.n)
         print(f"measuring with {args.calibration}; the pipe is simulated with the true paper rig", flush=True)
     else:
@@ -25,7 +25,7 @@ def run(args) -> int:
         rig = truth
         print("measuring with the true paper rig (give --calibration to use a calibration)", flush=True)
     scene = pipe_scene(truth, args.diameter, args.poses, args.offset, args.tilt, seed=args.seed)
-    res = pipe_experiment(rig, scene, args.noise, seed=args.seed, rig_cov=rig_cov)
+    res = pipe_experiment(rig, scene, args.noise, seed=args.seed, rig_cov=rig_cov, undetermined=undetermined)
     files = write_pipe(out, res, "points.json", args.noise)
     names = [v.name for v in res["observations"].views]
     print_points(names, [p["points"] for p in res["poses"]], [p["circle"] for p in res["poses"]])

@@ -459,7 +459,7 @@ def simulated_calibrations(plan: Plan, trials: int, seed: int = 0, progress: boo
     """``trials`` simulations of the plan's box calibration at its noise (trial ``t``: seed
     ``seed + t``), each calibrated from its usable observations: yields ``(obs, truth, result,
     None)``, or ``(obs, truth, None, reason)`` where a calibration cannot be made."""
-    from ..calibration.calibrate import calibrate
+    from ..calibration.calibrate import calibrate, require_determined
     from ..calibration.staged import CalibrationError
     from ..observations.simulate import box_scene, simulate
 
@@ -474,7 +474,7 @@ def simulated_calibrations(plan: Plan, trials: int, seed: int = 0, progress: boo
     for t in it:
         obs, truth = simulate(scene, noise=plan.noise, seed=seed + t)
         try:
-            yield obs, truth, calibrate(usable_observations(obs)), None
+            yield obs, truth, require_determined(calibrate(usable_observations(obs))), None
         except CalibrationError as e:
             yield obs, truth, None, str(e)
 

@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..calibration.calibrate import calibrate_many, cramer_rao, laser_errors, resolve_batch
+from ..calibration.calibrate import calibrate_many, cramer_rao, laser_errors, require_determined, resolve_batch
 from ..geometry.rig import Rig, laser_columns
 from ..observations.formats import write_json_atomic, write_text_atomic
 from ..observations.simulate import make_scene, simulate
@@ -112,6 +112,7 @@ def run_sweep(
     results = calibrate_many(observations, batch=batch, progress=progress, workers=min(2, os.cpu_count() or 1))
     per_trial = (time.perf_counter() - t1) / len(results)
     for (li, s, t, sd), res in zip(seeds, results, strict=True):
+        require_determined(res)
         st = res.staged
         for m, rig in (("joint", res.rig), ("staged", st.rig)):
             comp[m][li, t] = laser_component_errors(rig, truth.rig, x_ref)

@@ -150,6 +150,7 @@ def spots_from_images(
     rig_cov: np.ndarray | None = None,
     spot_sigma_mm: float | None = None,
     axis=(0.0, 0.0, 1.0),
+    undetermined: tuple[int, ...] = (),
 ) -> tuple[Observations, dict[str, list[str]]]:
     """The laser spots of every image in ``folder`` (sorted by name), labelled by the calibrated
     rig's laser lines: each spot takes the one laser whose line its reflected ray passes near
@@ -157,8 +158,9 @@ def spots_from_images(
     laser, are left out and reported.  With ``spot_sigma_mm`` (the laser spot's Gaussian std on
     the surface) each centroid is corrected for the mirror's distortion of the spot's image, the
     surface taken across the radial direction from ``axis`` (a pipe's wall;
-    :func:`slcvjax.measurement.measure.corrected_spot_pixels`).  Returns spot observations (one view per image, no
-    boards) and the problems per image name.
+    :func:`slcvjax.measurement.measure.corrected_spot_pixels`).  No spot is given an ``undetermined``
+    laser (the calibration's ``undetermined_lasers``).  Returns spot observations (one view per
+    image, no boards) and the problems per image name.
     """
     from pathlib import Path
 
@@ -179,17 +181,18 @@ def spots_from_images(
         px = find_spots(img, disc) if disc is not None else np.zeros((0, 2))
         if disc is None:
             probs.append("no mirror disc found")
-        labels = label_by_lines(rig, px, pixel_sigma, rig_cov) if len(px) else np.zeros(0, int)
+        labels = label_by_lines(rig, px, pixel_sigma, rig_cov, undetermined) if len(px) else np.zeros(0, int)
         spots = []
         for p, lab in zip(px, labels, strict=True):
             at = f"spot at ({p[0]:.1f}, {p[1]:.1f})"
             if lab < 0:
-                probs.append(f"{at} lies near no laser's line, or near several; left out")
+                held = f" (laser {', '.join(map(str, undetermined))} undetermined: no spot is given it)"
+                probs.append(f"{at} lies near no laser's line, or near several; left out{held if undetermined else ''}")
             elif np.sum(labels == lab) > 1:
                 probs.append(f"{at}: laser {lab} has {int(np.sum(labels == lab))} spots; left out")
             else:
                 spots.append(SpotObs(int(lab), None, np.asarray(p, float)))
-        missing = sorted(set(range(rig.lasers.n)) - {s.laser for s in spots})
+        missing = sorted(set(range(rig.lasers.n)) - {s.laser for s in spots} - set(undetermined))
         if missing:
             probs.append(f"no spot for laser {', '.join(map(str, missing))}")
         views.append(ViewObs(f.stem, {}, spots, np.zeros((0, 2))))
@@ -209,9 +212,14 @@ def spots_from_images(
 
 
 def measure_observations(
-    rig: Rig, obs: Observations, pixel_sigma: float, rig_cov: np.ndarray | None = None
+    rig: Rig,
+    obs: Observations,
+    pixel_sigma: float,
+    rig_cov: np.ndarray | None = None,
+    undetermined: tuple[int, ...] = (),
 ) -> list[ViewPoints]:
-    """Triangulate every spot of every view of an observations file (see :func:`measure_spots`)."""
+    """Triangulate every spot of every view of an observations file (see :func:`measure_spots`;
+    ``undetermined``: the calibration's undetermined lasers, whose spots give no point)."""
     if obs.n_lasers != rig.lasers.n:
         raise ValueError(f"the observations have {obs.n_lasers} lasers, the calibration {rig.lasers.n}")
     lasers, pixels, view_of = [], [], []
@@ -222,7 +230,7 @@ def measure_observations(
             view_of.append(v)
     return measure_spots(
         rig, np.asarray(lasers, int), np.reshape(pixels, (-1, 2)), np.asarray(view_of, int), len(obs.views),
-        pixel_sigma, rig_cov,
+        pixel_sigma, rig_cov, undetermined,
     )  # fmt: skip
 
 
@@ -254,12 +262,14 @@ def pipe_experiment(
     rig_cov: np.ndarray | None = None,
     axis=(0.0, 0.0, 1.0),
     observed: Observations | None = None,
+    undetermined: tuple[int, ...] = (),
 ) -> dict:
     """Simulate the pipe scene with its true rig, measure with ``rig`` (e.g. a calibration).
 
     ``observed``: the spots to measure instead of simulated ones (one view per pose, in the
     scene's order: those detected in its rendered images, :func:`spots_from_images`); the
-    truth is still the scene's.
+    truth is still the scene's.  ``undetermined``: the calibration's undetermined lasers, whose
+    spots give no point.
 
     The circles are fitted across ``axis`` (the camera's z axis, as in the paper),
     from the points that are not nearly parallel to their rays.  Returns per pose
@@ -275,7 +285,7 @@ def pipe_experiment(
         # the scene's truth goes with the observed spots (for the plots and the points file)
         obs = dataclasses.replace(observed, extra={**observed.extra, "simulation": obs.extra["simulation"]})
     sigma = noise if pixel_sigma is None else pixel_sigma
-    views = measure_observations(rig, obs, sigma, rig_cov)
+    views = measure_observations(rig, obs, sigma, rig_cov, undetermined)
     poses = []
     for i, vp in enumerate(views):
         try:

@@ -325,10 +325,18 @@ def spots_on_lines(
     return near_ok & (gaps <= np.maximum(GAP_SIGMAS * gap_std, GAP_FLOOR_MM))
 
 
-def label_by_lines(rig: Rig, pixels: np.ndarray, pixel_sigma: float, rig_cov: np.ndarray | None = None) -> np.ndarray:
+def label_by_lines(
+    rig: Rig,
+    pixels: np.ndarray,
+    pixel_sigma: float,
+    rig_cov: np.ndarray | None = None,
+    undetermined: tuple[int, ...] = (),
+) -> np.ndarray:
     """(n,): the laser of each unlabelled spot, the one line its ray passes near
-    (:func:`spots_on_lines`); -1 where it passes near none, or near more than one."""
+    (:func:`spots_on_lines`); -1 where it passes near none, or near more than one.  No spot
+    is given an ``undetermined`` laser (its line is a placeholder)."""
     on_line = spots_on_lines(rig, pixels, pixel_sigma, rig_cov)
+    on_line[:, list(undetermined)] = False
     return np.where(on_line.sum(axis=1) == 1, np.argmax(on_line, axis=1), -1)
 
 
@@ -340,6 +348,7 @@ def measure_spots(
     n_views: int,
     pixel_sigma: float,
     rig_cov: np.ndarray | None = None,
+    undetermined: tuple[int, ...] = (),
 ) -> list[ViewPoints]:
     """Triangulate every spot of several views in one compiled call.
 
@@ -352,6 +361,9 @@ def measure_spots(
         pixel_sigma: per-coordinate pixel noise (px) of a spot.
         rig_cov: optional (G, G) covariance of the rig's tangent parameters (camera 9,
             mirror 6, lasers 4 N), as written by the calibration.
+        undetermined: lasers the calibration could not fix
+            (``Calibration.undetermined_lasers``): their spots give no point (each is listed in
+            ``missing``) and no spot is said to fit their placeholder lines.
 
     Returns one :class:`ViewPoints` per view.
     """
@@ -383,14 +395,23 @@ def measure_spots(
     own = on_line[np.arange(lasers.size), lasers] if lasers.size else np.zeros(0, bool)
     others = on_line.copy()
     others[np.arange(lasers.size), lasers] = False
+    held = np.isin(np.arange(rig.lasers.n), np.asarray(undetermined, int))
+    others[:, held] = False
     fits = np.where(~own & (others.sum(axis=1) == 1), np.argmax(others, axis=1), -1)
+    usable = np.asarray(valid, bool) & ~held[lasers]
     out = []
     for v in range(n_views):
         idx = np.flatnonzero(view_of == v)  # spots of view v, in their order
-        ok = valid[idx]
+        ok = usable[idx]
         good = idx[ok]
         missing = [
-            (int(k), int(lasers[i]), "its reflected ray misses the mirror or is parallel to the laser line")
+            (
+                int(k),
+                int(lasers[i]),
+                f"laser {lasers[i]} is undetermined in the calibration (the data did not fix its line)"
+                if held[lasers[i]]
+                else "its reflected ray misses the mirror or is parallel to the laser line",
+            )
             for k, i in zip(np.flatnonzero(~ok), idx[~ok], strict=True)
         ]
         n = good.size

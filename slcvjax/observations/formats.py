@@ -404,12 +404,15 @@ class Calibration:
     ``board_poses[i][board]`` is ``T_cam_board`` in view ``i``;
     ``calibration_view_poses[j]`` is ``T_cam_board`` of direct view ``j`` (or None).
     ``extra`` holds ``uncertainty``, ``residuals``, ``stages`` and unknown fields.
+    ``undetermined_lasers``: lasers the data could not fix (written with a null ``point`` and
+    ``direction``; the rig holds a placeholder line for each, which nothing may use).
     """
 
     rig: Rig
     board_poses: list[dict[str, Pose]] = field(default_factory=list)
     calibration_view_poses: list[Pose | None] | None = None
     extra: dict = field(default_factory=dict)
+    undetermined_lasers: tuple[int, ...] = ()
 
 
 def _pose_json(p: Pose) -> dict:
@@ -429,6 +432,9 @@ def _unit(ctx: _Ctx, v: np.ndarray, where: str) -> np.ndarray:
     if n < 1e-12:
         ctx.fail(where, "zero vector")
     return v / n
+
+
+UNDETERMINED_LASER = "undetermined: the data do not fix this laser's line (see uncertainty.lasers)"
 
 
 def calibration_to_json(cal: Calibration) -> dict:
@@ -456,8 +462,12 @@ def calibration_to_json(cal: Calibration) -> dict:
                 "axis": np.asarray(mir.axis, float).tolist(),
             },
             "lasers": [
-                {"point": p.tolist(), "direction": d.tolist()}
-                for p, d in zip(np.asarray(las.points, float), np.asarray(las.directions, float), strict=True)
+                {"point": None, "direction": None, "status": UNDETERMINED_LASER}
+                if i in cal.undetermined_lasers
+                else {"point": p.tolist(), "direction": d.tolist()}
+                for i, (p, d) in enumerate(
+                    zip(np.asarray(las.points, float), np.asarray(las.directions, float), strict=True)
+                )
             ],
             "board_poses": [{b: _pose_json(p) for b, p in view.items()} for view in cal.board_poses],
         }
@@ -506,8 +516,13 @@ def read_calibration(path: str | os.PathLike) -> Calibration:
         axis = _unit(ctx, ctx.vector(ctx.get(m, "axis", "mirror"), 3, "mirror.axis"), "mirror.axis")
         mirror = mirror_of_shape(shape, apex, axis, radius, height)
 
-    pts, dirs = [], []
+    pts, dirs, undetermined = [], [], []
     for i, las in enumerate(ctx.list_of(doc, "lasers", "", optional=True)):
+        if isinstance(las, dict) and las.get("point", 0) is None and las.get("direction", 0) is None:
+            undetermined.append(i)  # the data did not fix it: a placeholder line that nothing uses
+            pts.append(np.zeros(3))
+            dirs.append(np.array([0.0, 0.0, 1.0]))
+            continue
         pts.append(ctx.vector(ctx.get(las, "point", f"lasers[{i}]"), 3, f"lasers[{i}].point"))
         d = ctx.vector(ctx.get(las, "direction", f"lasers[{i}]"), 3, f"lasers[{i}].direction")
         dirs.append(_unit(ctx, d, f"lasers[{i}].direction"))
@@ -527,4 +542,4 @@ def read_calibration(path: str | os.PathLike) -> Calibration:
         ]
     known = {"format", "camera", "mirror", "lasers", "board_poses", "calibration_view_poses"}
     extra = {k: v for k, v in doc.items() if k not in known}
-    return Calibration(Rig(cam, mirror, lasers), board_poses, cvp, extra)
+    return Calibration(Rig(cam, mirror, lasers), board_poses, cvp, extra, tuple(undetermined))
