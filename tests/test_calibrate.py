@@ -24,6 +24,7 @@ from slcvjax.calibration.calibrate import (
     report,
     to_calibration,
 )
+from slcvjax.calibration.chessboard import calibrate_from_corners
 from slcvjax.calibration.staged import calibrate_intrinsics, staged
 from slcvjax.cli.common import print_report
 from slcvjax.geometry.rig import laser_columns
@@ -509,3 +510,19 @@ def test_camera_command_lists_images_without_a_board(tmp_path, capsys):
     bad.write_bytes(b"not an image")
     assert cli.main(["camera", *images, str(bad), "--out", str(tmp_path / "c2.json")]) == 2
     assert "broken.jpg" in capsys.readouterr().err
+
+
+def test_a_camera_alone_calibrates_from_its_corners_without_a_mirror(exact):
+    """The ``camera`` command's fit: a camera-only rig (no mirror, no lasers) through the joint LM
+    with corner rows only, from noise-free simulated corners, lands on the simulator's camera."""
+    obs, truth = exact
+    views = [cv for cv in obs.calibration_views if cv.seen.all()]
+    names = [f"direct{i}" for i in range(len(views))]
+    res = calibrate_from_corners(names, [cv.pixels for cv in views], obs.boards[views[0].board], obs.image_size)
+    assert res.rms_px < 1e-6
+    np.testing.assert_allclose(np.asarray(res.camera.K), np.asarray(truth.rig.camera.K), rtol=1e-7, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(res.camera.dist), np.asarray(truth.rig.camera.dist), atol=1e-7)
+    pk = pack(obs)  # dots, spots and rim too: a camera-only rig cannot predict them
+    p = _truth_params(truth, pk)
+    with pytest.raises(ValueError, match="camera-only"):
+        _lm.residual_rows(_lm.Params(sj.Rig.camera_only(truth.rig.camera), p.poses, p.chess), pk)

@@ -14,8 +14,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..geometry.camera import Camera
-from ..geometry.lasers import Lasers
-from ..geometry.mirror import ConeMirror
 from ..geometry.pose import Pose
 from ..geometry.rig import Rig
 from ..observations.formats import CalibrationViewObs, Observations
@@ -107,14 +105,8 @@ def calibrate_from_corners(
     obs = Observations(size, 1.0, 1.0, 0, {"chess": points}, views, [])
     cam0, poses0, rep = calibrate_intrinsics(obs)
     pk = pack(obs, use_views=False)
-    # the joint LM traces every observation kind over a full rig; here the mirror's columns are
-    # held (masks below) and no observation looks through it, so any mirror serves as its slot
-    rig = Rig(
-        cam0,
-        ConeMirror.create([0.0, 0.0, 1e3], [0.0, 0.0, 1.0], 1.0, 1.0),
-        Lasers(jnp.zeros((0, 3)), jnp.zeros((0, 3))),
-    )
-    params = Params(rig, Pose(jnp.zeros((0, 3, 3)), jnp.zeros((0, 3))), stack_poses([poses0[i] for i in pk.chess_keys]))
+    no_poses = Pose(jnp.zeros((0, 3, 3)), jnp.zeros((0, 3)))
+    params = Params(Rig.camera_only(cam0), no_poses, stack_poses([poses0[i] for i in pk.chess_keys]))
     masks = make_masks(params, {"mirror"})
     layout = Layout.of(pk)
     res = _solve(

@@ -197,7 +197,10 @@ def _rim(d, cam, mir, uv, norm):
 
 
 def rim_norms(rig: Rig, pk: Packed) -> Float[Array, " R"]:
-    """Each rim pixel's ``|dF/duv|`` (:func:`rim_scale`) on ``rig``: the rim rows' normalisation."""
+    """Each rim pixel's ``|dF/duv|`` (:func:`rim_scale`) on ``rig``: the rim rows' normalisation
+    (none for a camera-only rig, which has no rim)."""
+    if rig.mirror is None:
+        return jnp.zeros(pk.rim_pixels.shape[0])
     return jax.vmap(lambda uv: rim_scale(rig.camera, rig.mirror, uv))(pk.rim_pixels)
 
 
@@ -256,8 +259,12 @@ class Group(NamedTuple):
 
 def _groups(params: Params, pk: Packed, with_jac: bool, rim_norm: Array | None) -> list[Group]:
     """The three groups of observations: dots and spots (one projection through the mirror),
-    rim pixels, chessboard corners of the direct views."""
+    rim pixels, chessboard corners of the direct views.  A camera-only rig
+    (:meth:`slcvjax.geometry.rig.Rig.camera_only`: no mirror) has the corners' group only; its
+    problem has no row of the other kinds, and its mirror's columns are held (:func:`make_masks`)."""
     rig = params.rig
+    if rig.mirror is None and n_observations(pk) != pk.chess_pose.shape[0]:
+        raise ValueError("a camera-only rig (no mirror) sees chessboard corners only: no dots, spots or rim pixels")
     cam, mir, las = rig.camera, rig.mirror, rig.lasers
     g = params.n_global  # the "unused" global column
     nb = params.n_blocks
@@ -383,6 +390,8 @@ def _groups(params: Params, pk: Packed, with_jac: bool, rim_norm: Array | None) 
         [(0, pk.counts[Kind.CHESS])],
         CHUNKS[2],
     )
+    if mir is None:  # the other groups have no rows: their rows' offsets are those of the full list
+        return [chess_group]
     return [dots_spots, rim_group, chess_group]
 
 
