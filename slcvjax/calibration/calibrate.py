@@ -22,7 +22,7 @@ returns the joint result with its covariance, and the staged result beside it.
 import dataclasses
 import functools
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -851,66 +851,49 @@ class _Trial:
         self.arr = self.layout.pad_packed(pk)
 
 
-def _calibrate_lockstep(
-    obs_list, camera, freeze, loss, loss_scale, max_steps, solver, bar=None, mirror=None, estimate=()
-):
-    """:func:`calibrate`'s passes for every observation set in step; ``solver`` runs a pass's solves."""
-    freeze = set(freeze)
-    trials = [
-        _Trial(o, camera, freeze, time.perf_counter(), fine=solver is _solve_vmap, mirror=mirror, estimate=estimate)
-        for o in obs_list
-    ]
-    size = len(trials)
+class _Lockstep:
+    """The trials of :func:`_calibrate_lockstep` and how a pass's solves run over them: the driver
+    that :data:`SCHEDULE`'s steps call (``solver`` runs a pass's solves, all trials' at once)."""
 
-    def run(spec: PassSpec, chosen: list[int], scale: float | None = None):
+    def __init__(self, trials: list[_Trial], solver, freeze: set, loss: str, loss_scale, max_steps: int, bar=None):
+        self.trials, self.solver, self.freeze = trials, solver, freeze
+        self.loss, self.loss_scale, self.max_steps, self.bar = loss, loss_scale, max_steps, bar
+        self.every = list(range(len(trials)))
+
+    def solve(self, spec: PassSpec, chosen: list[int], scale: float | None = None) -> None:
         """The pass ``spec`` of the ``chosen`` trials from where they are (``scale``: its loss
         scale instead of the one ``spec`` gives)."""
+        trials = self.trials
         for i in chosen:
             tr = trials[i]
             if scale is not None:
                 tr.scale = scale
             elif spec.scale_floor is not None:
-                tr.scale = loss_scale or 3.0 * max(robust_sigma(tr.params, tr.pk), spec.scale_floor)
+                tr.scale = self.loss_scale or 3.0 * max(robust_sigma(tr.params, tr.pk), spec.scale_floor)
         jobs = [_job(trials[i], trials[i].params, spec) for i in chosen]
-        own = spec.steps if spec.steps is not None and spec.steps < max_steps else None  # the pass's own limit
-        for i, res in zip(chosen, solver(jobs, spec.loss or loss, own or max_steps, size=size), strict=True):
+        own = spec.steps if spec.steps is not None and spec.steps < self.max_steps else None  # the pass's own limit
+        solved = self.solver(jobs, spec.loss or self.loss, own or self.max_steps, size=len(trials))
+        for i, res in zip(chosen, solved, strict=True):
             _record(trials[i], spec.name, res, own)
             trials[i].params = unpad_params(trials[i].layout, res.params)
-        if bar is not None:
-            bar.set_postfix_str(spec.name.split(":")[0])
+        if self.bar is not None:
+            self.bar.set_postfix_str(spec.name.split(":")[0])
 
-    every = list(range(size))
-
-    # A: geometry without the lasers, only far enough to decide the boards' flips again
-    run(PASS_A if "poses" not in freeze else dataclasses.replace(PASS_A, rtol=_RTOL_START), every)
-    # the boards' flips decided again on the refined geometry, then A once more where any
-    # board turned (otherwise pass A's poses already fit the dots on this geometry)
-    if "poses" not in freeze:
-        again = []
-        for i, tr in enumerate(trials):
-            p = tr.params
-            poses = stack_poses(board_poses(p.rig.camera, p.rig.mirror, tr.pk, start=p.poses)[0])
-            if np.any(_turned(poses, p.poses)):
-                tr.params = Params(p.rig, poses, p.chess)
-                again.append(i)
-        if again:
-            run(PASS_A2, again)
-
-    def other_starts(chosen, turned_only: bool, pass_loss=None) -> list[int]:
+    def other_starts(self, chosen: list[int], turned_only: bool, pass_loss: str | None = None) -> list[int]:
         """Each board pose of the ``chosen`` trials swapped for its flipped twin, or for its pose
         carried over from another view (:func:`_carried`), where that fits better, both refined
         with the rig held (``turned_only``: only swaps that turn the board; ``pass_loss``: a loss
         for this instead of the calibration's).  Returns the trials where any board turned."""
-        this_loss = pass_loss or loss
+        trials, this_loss = self.trials, pass_loss or self.loss
         chosen = [i for i in chosen if trials[i].pk.n_poses]
         starts = [_candidates(trials[i].params, trials[i].pk, trials[i].masks) for i in chosen]
         # one solve per kind of start over the chosen trials: the batch shapes of a pass
         solved = [
-            solver(
+            self.solver(
                 [_job(trials[i], c, _TWIN_SOLVE, hold) for i, (c, hold) in zip(chosen, kind, strict=True)],
                 this_loss,
-                max_steps,
-                size=size,
+                self.max_steps,
+                size=len(trials),
             )
             for kind in zip(*starts, strict=True)
         ]
@@ -927,14 +910,14 @@ def _calibrate_lockstep(
                 turned.append(i)
         return turned
 
-    def aimed_starts(chosen) -> None:
+    def aimed_starts(self, chosen: list[int]) -> None:
         """B again from every laser aimed from the camera's centre through its spots
         (:func:`slcvjax.calibration.staged.aimed_lasers`) where that turns a laser by more than
         :data:`AIMED_TURN_DEG`; kept where it ends at a lower cost.  A laser whose spots lie
         along a few mm of its line at 140 mm (measured: the preset at 0.9 px, seeds 12 and 14)
         went from B into a line nearly along its boards, 82 degrees off, while a start near
         the truth ended at a lower cost."""
-        picked, starts = [], []
+        trials, picked, starts = self.trials, [], []
         for i in chosen:
             tr = trials[i]
             p = tr.params
@@ -949,10 +932,10 @@ def _calibrate_lockstep(
             return
         jobs = [_job(trials[i], st, PASS_B2) for i, st in zip(picked, starts, strict=True)]
         now = [_job(trials[i], trials[i].params, PASS_B2) for i in picked]
-        solved = solver(jobs, loss, max_steps, size=size)
+        solved = self.solver(jobs, self.loss, self.max_steps, size=len(trials))
         # B's own final cost held the rim rows' normalisation of B's start: the cost at B's
         # solution is taken again with the one the aimed solve started from (the same rig)
-        current = solver(now, loss, 0, size=size)
+        current = self.solver(now, self.loss, 0, size=len(trials))
         for i, res, cur in zip(picked, solved, current, strict=True):
             tr = trials[i]
             kept = float(res.cost) < float(cur.cost)
@@ -960,75 +943,137 @@ def _calibrate_lockstep(
             if kept:
                 tr.params = unpad_params(tr.layout, res.params)
 
-    # B: lasers refitted on the refined geometry (spots relabelled or left out where they
-    # fit another laser's line or none), then everything
-    if "lasers" not in freeze:
-        for tr in trials:
-            p = tr.params
-            fit = fit_lasers(p.rig.camera, p.rig.mirror, tr.pk, unstack_poses(p.poses), tr.obs.n_lasers)
-            tr.params = Params(p.rig.with_lasers(fit.lasers), p.poses, p.chess)
-            tr.undetermined = tuple(int(i) for i in np.flatnonzero(fit.undetermined))
-            tr.masks = make_masks(tr.params, tr.freeze, tr.estimate, held_lasers=tr.undetermined)
-            _relabel_spots(tr, fit)
-    run(PASS_B, every)
-    if "lasers" not in freeze:
-        aimed_starts(every)
-    # boards whose other starts (refined with dots and spots, the rig held) fit better are swapped
-    for tr in trials:
-        tr.scale = loss_scale or 3.0 * max(robust_sigma(tr.params, tr.pk), PASS_B.scale_floor)
-    if "poses" not in freeze:
-        other_starts(every, turned_only=False)
-    # C: final pass at the re-estimated scale.  Every kind keeps weight 1: weighting each by
-    # its own noise (the rim's is larger in rendered images) made the lasers worse from images
-    # (benchmarks/images_vs_file.py), where the dots' errors are mostly systematic
-    run(PASS_C, every)
-    # observations far beyond the noise (gross outliers: a wrong dot, a reflection taken
-    # for a spot) are left out and C run again, so that none is spread over good ones
-    for i in every:
-        _leave_out(
-            trials[i],
-            lambda i=i: other_starts([i], turned_only=False, pass_loss="cauchy"),
-            lambda pass_loss, scale, i=i: run(
-                dataclasses.replace(
-                    PASS_C3, name=f"C3: joint (Cauchy loss at {scale:.3g} px, to find the outliers)", loss=pass_loss
-                )
-                if pass_loss
-                else PASS_C3,
-                [i],
-                scale,
-            ),
-            find=loss != "linear",
+    def result(self, tr: _Trial) -> CalibrationResult:
+        """A trial's result at the end of the schedule: its solution, covariance and passes."""
+        cov, noise = covariance_and_noise(tr.params, tr.pk, tr.masks, self.loss, tr.scale)
+        return CalibrationResult(
+            tr.params,
+            tr.st,
+            tr.pk,
+            tr.masks,
+            cov,
+            self.loss,
+            float(tr.scale),
+            tr.passes,
+            {"staged_s": tr.t_staged, "total_s": time.perf_counter() - tr.t0},
+            dict(zip(KIND_NAMES, noise.sigma.tolist(), strict=True)),
+            tr.repairs,
+            undetermined_lasers=tr.undetermined,
         )
-    # a pose carried after B from a board still wrong then may be wrong yet: where a board
-    # fits badly, the other starts again, and C again where a board turned, until none turns
-    # (at most three times)
-    again = [i for i in every if _misfit_boards(trials[i], loss)] if "poses" not in freeze else []
-    for _ in range(3):
-        again = other_starts(again, turned_only=True)
+
+
+def _first_pass(d: _Lockstep) -> None:
+    """A: the geometry without the lasers, only far enough to decide the boards' flips again
+    (to the start's tolerance where the poses are held: no flip is decided again)."""
+    d.solve(PASS_A if "poses" not in d.freeze else dataclasses.replace(PASS_A, rtol=_RTOL_START), d.every)
+
+
+def _reflip(d: _Lockstep) -> None:
+    """The boards' flips decided again on the refined geometry, then A2 where any board turned
+    (otherwise pass A's poses already fit the dots on this geometry)."""
+    again = []
+    for i, tr in enumerate(d.trials):
+        p = tr.params
+        poses = stack_poses(board_poses(p.rig.camera, p.rig.mirror, tr.pk, start=p.poses)[0])
+        if np.any(_turned(poses, p.poses)):
+            tr.params = Params(p.rig, poses, p.chess)
+            again.append(i)
+    if again:
+        d.solve(PASS_A2, again)
+
+
+def _refit_lasers(d: _Lockstep) -> None:
+    """The lasers refitted on the refined geometry (:func:`slcvjax.calibration.staged.fit_lasers`):
+    spots relabelled or left out where they fit another laser's line or none, and a laser whose
+    spots cannot fix a line held (undetermined)."""
+    for tr in d.trials:
+        p = tr.params
+        fit = fit_lasers(p.rig.camera, p.rig.mirror, tr.pk, unstack_poses(p.poses), tr.obs.n_lasers)
+        tr.params = Params(p.rig.with_lasers(fit.lasers), p.poses, p.chess)
+        tr.undetermined = tuple(int(i) for i in np.flatnonzero(fit.undetermined))
+        tr.masks = make_masks(tr.params, tr.freeze, tr.estimate, held_lasers=tr.undetermined)
+        _relabel_spots(tr, fit)
+
+
+def _rescale(d: _Lockstep) -> None:
+    """The loss scale re-estimated at B's solution: the user's, else 3 x the robust noise sigma."""
+    for tr in d.trials:
+        tr.scale = d.loss_scale or 3.0 * max(robust_sigma(tr.params, tr.pk), PASS_B.scale_floor)
+
+
+def _leave_outliers(d: _Lockstep) -> None:
+    """Observations far beyond the noise (gross outliers: a wrong dot, a reflection taken for a
+    spot) left out and C run again (C3), so that none is spread over good ones (:func:`_leave_out`)."""
+    for i in d.every:
+
+        def rerun(pass_loss, scale, i=i):
+            spec = PASS_C3
+            if pass_loss:
+                name = f"C3: joint (Cauchy loss at {scale:.3g} px, to find the outliers)"
+                spec = dataclasses.replace(PASS_C3, name=name, loss=pass_loss)
+            d.solve(spec, [i], scale)
+
+        _leave_out(
+            d.trials[i],
+            lambda i=i: d.other_starts([i], turned_only=False, pass_loss="cauchy"),
+            rerun,
+            find=d.loss != "linear",
+        )
+
+
+def _turn_misfits(d: _Lockstep, rounds: int = 3) -> None:
+    """A pose carried after B from a board still wrong then may be wrong yet: where a board fits
+    badly the other starts again, and C again (C2) where a board turned, until none turns (at
+    most ``rounds`` times)."""
+    again = [i for i in d.every if _misfit_boards(d.trials[i], d.loss)]
+    for _ in range(rounds):
+        again = d.other_starts(again, turned_only=True)
         if not again:
             break
-        run(PASS_C2, again)
-    out = []
-    for tr in trials:
-        cov, noise = covariance_and_noise(tr.params, tr.pk, tr.masks, loss, tr.scale)
-        sigmas = noise.sigma
-        out.append(
-            CalibrationResult(
-                tr.params,
-                tr.st,
-                tr.pk,
-                tr.masks,
-                cov,
-                loss,
-                float(tr.scale),
-                tr.passes,
-                {"staged_s": tr.t_staged, "total_s": time.perf_counter() - tr.t0},
-                dict(zip(KIND_NAMES, sigmas.tolist(), strict=True)),
-                tr.repairs,
-                undetermined_lasers=tr.undetermined,
-            )
-        )
-    return out
+        d.solve(PASS_C2, again)
+
+
+@dataclass(frozen=True)
+class Step:
+    """One step of :data:`SCHEDULE`: what it does, the function that does it over the trials, and
+    the parameter block whose freezing skips it (None: it always runs)."""
+
+    does: str
+    run: Callable[[_Lockstep], None]
+    unless_frozen: str | None = None
+
+
+# :func:`calibrate`'s schedule after the staged start, in order.  C keeps every kind at weight 1:
+# weighting each by its own noise (the rim's is larger in rendered images) made the lasers worse
+# from images (benchmarks/images_vs_file.py), where the dots' errors are mostly systematic.
+SCHEDULE: tuple[Step, ...] = (
+    Step("A: camera, mirror and poses, the lasers held and the spots unweighted", _first_pass),
+    Step("the boards' flips decided again; A2 where any turned", _reflip, "poses"),
+    Step("the lasers refitted on that geometry, their spots relabelled", _refit_lasers, "lasers"),
+    Step("B: everything", lambda d: d.solve(PASS_B, d.every)),
+    Step("B2: B from lasers aimed through their spots, kept where better", lambda d: d.aimed_starts(d.every), "lasers"),
+    Step("the loss scale re-estimated", _rescale),
+    Step("every board's other starts, swapped in where better", lambda d: d.other_starts(d.every, False), "poses"),
+    Step("C: the final pass", lambda d: d.solve(PASS_C, d.every)),
+    Step("C3: the gross outliers left out, C again", _leave_outliers),
+    Step("C2: badly fitting boards' other starts, C again where one turned", _turn_misfits, "poses"),
+)
+
+
+def _calibrate_lockstep(
+    obs_list, camera, freeze, loss, loss_scale, max_steps, solver, bar=None, mirror=None, estimate=()
+):
+    """:func:`calibrate`'s :data:`SCHEDULE` for every observation set in step; ``solver`` runs a pass's solves."""
+    freeze = set(freeze)
+    trials = [
+        _Trial(o, camera, freeze, time.perf_counter(), fine=solver is _solve_vmap, mirror=mirror, estimate=estimate)
+        for o in obs_list
+    ]
+    d = _Lockstep(trials, solver, freeze, loss, loss_scale, max_steps, bar)
+    for step in SCHEDULE:
+        if step.unless_frozen not in freeze:
+            step.run(d)
+    return [d.result(tr) for tr in trials]
 
 
 def _restore_spots(params: Params, model, cur: Packed, obs: Observations, left) -> tuple[set, Packed]:
