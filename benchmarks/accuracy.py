@@ -48,7 +48,7 @@ def main() -> None:
                 "converged": bool(ok),
                 "sigma_px": rep["sigma_px"],
                 "invalid": rep["invalid"],
-                "passes": [q.__dict__ for q in res.passes],
+                "passes": [q.to_json() for q in res.passes],
                 "position_rms_mm": float(np.sqrt(np.mean(p**2))),
                 "direction_rms_deg": float(np.degrees(np.sqrt(np.mean(a**2)))),
             }

@@ -71,7 +71,7 @@ def time_schur(start, pk, masks):
         "run_s": run,
         "steps": int(res.steps),
         "cost": float(res.cost),
-        "result": _lm.RESULT_NAMES[int(res.result)],
+        "result": _lm.Outcome(int(res.result)).label,
     }
 
 

@@ -57,10 +57,10 @@ from .central import central_start
 from .lm import (
     CONVERGED,
     MAX_STEPS,
-    RESULT_NAMES,
     Covariance,
     LMResult,
     Masks,
+    Outcome,
     Params,
     block_costs,
     covariance_of_linearisation,
@@ -360,22 +360,45 @@ def _robust_sigma_of(norm, kind, ok) -> float:
 
 @dataclass
 class JointPass:
-    """One LM pass: its name, steps, result (``slcvjax.calibration.lm.RESULT_NAMES`` and what followed it), costs,
-    loss scale, its result code (``code``, ``slcvjax.calibration.lm.CONVERGED`` ...) and the step limit the
-    schedule gives it where that is below the calibration's (``limit``: passes A and A2)."""
+    """One LM pass: its name, steps, costs, loss scale, how it ended (``code``, a
+    :class:`slcvjax.calibration.lm.Outcome`), the step limit the schedule gives it where that is
+    below the calibration's (``limit``: passes A and A2), and what followed it (``notes``: a
+    start kept or not, boards turned after it)."""
 
     name: str
     steps: int
-    result: str
     cost0: float
     cost: float
     scale: float
-    code: int
+    code: Outcome
     limit: int | None = None
+    notes: list[str] = field(default_factory=list)
 
     @property
     def converged(self) -> bool:
         return self.code == CONVERGED
+
+    @property
+    def result(self) -> str:
+        """How it ended in words (``converged``, ``stopped at its limit of 10 steps``, ...) and its notes."""
+        said = self.code.label
+        if self.limit is not None and self.code == MAX_STEPS:
+            said = f"stopped at its limit of {self.limit} steps"
+        return "; ".join([said, *self.notes])
+
+    def to_json(self) -> dict:
+        """The pass as the calibration file's ``stages.joint.passes`` gives it."""
+        return {
+            "name": self.name,
+            "steps": self.steps,
+            "result": self.result,
+            "outcome": self.code.label,
+            "notes": self.notes,
+            "cost0": self.cost0,
+            "cost": self.cost,
+            "scale": self.scale,
+            "limit": self.limit,
+        }
 
     @property
     def finished(self) -> bool:
@@ -746,9 +769,26 @@ def calibrate_many(
             bar.close()
 
 
-def _solve_loop(jobs: list[tuple], loss: str, max_steps: int, size: int | None = None) -> list[LMResult]:
-    """Each job ``(params, arr, masks, scale, kind_weight, rtol)`` through the compiled solve (``size``: unused)."""
-    return [_solve(p, a, m, loss, sc, max_steps, rt, kw) for p, a, m, sc, kw, rt in jobs]
+class SolveJob(NamedTuple):
+    """One LM solve of a pass (:func:`_job`): its start, problem and masks padded to the trial's
+    shape buckets, its loss scale (px), kind weights (None: all 1) and relative cost tolerance."""
+
+    params: Params
+    arrays: Packed
+    masks: Masks
+    scale: float
+    kind_weight: tuple[float, float, float, float] | None
+    rtol: float
+
+    def shape_key(self) -> tuple:
+        """What decides its compilation: the structure and shapes of its arrays."""
+        leaves, tree = jax.tree_util.tree_flatten((self.params, self.arrays, self.masks))
+        return tree, tuple(jnp.shape(x) for x in leaves)
+
+
+def _solve_loop(jobs: list[SolveJob], loss: str, max_steps: int, size: int | None = None) -> list[LMResult]:
+    """Each job through the compiled solve, one after the other (``size``: unused)."""
+    return [_solve(j.params, j.arrays, j.masks, loss, j.scale, max_steps, j.rtol, j.kind_weight) for j in jobs]
 
 
 @jax.jit
@@ -776,25 +816,31 @@ def _place(x, sharding):
     return jax.make_array_from_callback(host.shape, sharding, lambda index: host[index])
 
 
-def _solve_vmap(jobs: list[tuple], loss: str, max_steps: int, size: int | None = None) -> list[LMResult]:
+def _solve_vmap(jobs: list[SolveJob], loss: str, max_steps: int, size: int | None = None) -> list[LMResult]:
     """The jobs as ``vmap``-ped solves, one per group of equal sizes, sharded over the devices.
 
     Each group is padded to ``size`` (the number of trials; and to a multiple of the
     device count) by repeating its last job, so that every pass of a lockstep
     calibration reuses one compilation.
     """
-    shapes = [str(jax.tree_util.tree_map(lambda x: jnp.shape(x), (p, a, m))) for p, a, m, *_ in jobs]
+    shapes = [j.shape_key() for j in jobs]
     out: list = [None] * len(jobs)
     for key in dict.fromkeys(shapes):
         idx = [i for i, k in enumerate(shapes) if k == key]
         n, sharding = _trial_sharding(max(size or 0, len(idx)))
-        take = idx + [idx[-1]] * (n - len(idx))
-        cols = list(zip(*[jobs[i] for i in take], strict=True))
-        p, a, m = (jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *c) for c in cols[:3])
-        sc = jnp.asarray(cols[3], dtype=float)
-        kw = jnp.stack([kind_weights(k) for k in cols[4]])
-        rt = jnp.asarray(cols[5], dtype=float)
-        batch = (p, a, m, sc, kw, rt)
+        group = [jobs[i] for i in idx + [idx[-1]] * (n - len(idx))]
+
+        def stacked(*trees):
+            return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *trees)
+
+        batch = (
+            stacked(*(j.params for j in group)),
+            stacked(*(j.arrays for j in group)),
+            stacked(*(j.masks for j in group)),
+            jnp.asarray([j.scale for j in group], dtype=float),
+            jnp.stack([kind_weights(j.kind_weight) for j in group]),
+            jnp.asarray([j.rtol for j in group], dtype=float),
+        )
         if sharding is not None:
             # every process holds the whole batch (the same on each): each device takes its rows
             batch = jax.tree_util.tree_map(functools.partial(_place, sharding=sharding), batch)
@@ -906,7 +952,7 @@ class _Lockstep:
                 tr.params, n = _keep_better(tr.params, other, tr.pk, this_loss, tr.scale, turned_only)
                 n_moved += n
             if n_moved:
-                tr.passes[-1].result += f"; {n_moved} board pose(s) turned after it"
+                tr.passes[-1].notes.append(f"{n_moved} board pose(s) turned after it")
                 turned.append(i)
         return turned
 
@@ -939,7 +985,7 @@ class _Lockstep:
         for i, res, cur in zip(picked, solved, current, strict=True):
             tr = trials[i]
             kept = float(res.cost) < float(cur.cost)
-            _record(tr, PASS_B2.name, res, None, "; kept: a lower cost than B's" if kept else "; B's cost is lower")
+            _record(tr, PASS_B2.name, res, None, "kept: a lower cost than B's" if kept else "B's cost is lower")
             if kept:
                 tr.params = unpad_params(tr.layout, res.params)
 
@@ -1179,11 +1225,10 @@ def _rigid_refine(res: CalibrationResult, obs: Observations, group: list[str], m
             JointPass(
                 name,
                 int(out.steps),
-                RESULT_NAMES[int(out.result)],
                 float(out.initial_cost),
                 float(out.cost),
                 float(res.scale),
-                int(out.result),
+                Outcome(int(out.result)),
             )
         )
         norm, kind, ok = _per_observation(params, pr)
@@ -1616,26 +1661,33 @@ def _with_dot_labels(pk: Packed, obs: Observations, moved: dict[int, int]) -> Pa
     return dataclasses.replace(pk, dot_points=pts, dot_src=tuple(src))
 
 
-def _job(tr: "_Trial", params: Params, spec: PassSpec, masks: Masks | None = None) -> tuple:
+def _job(tr: "_Trial", params: Params, spec: PassSpec, masks: Masks | None = None) -> SolveJob:
     """A solve of trial ``tr`` from ``params`` by the pass ``spec`` (``masks``: what it frees instead of what
-    ``spec`` says): ``(params, arrays, masks, scale, kind_weight, rtol)`` padded to the trial's shape buckets."""
+    ``spec`` says), padded to the trial's shape buckets."""
     if masks is None:
         masks = tr.mask_a if spec.lasers_held else tr.masks
-    return (pad_params(tr.layout, params), tr.arr, pad_masks(tr.layout, masks), tr.scale, spec.kind_weight, spec.rtol)
+    return SolveJob(
+        pad_params(tr.layout, params), tr.arr, pad_masks(tr.layout, masks), tr.scale, spec.kind_weight, spec.rtol
+    )
 
 
 # the other starts of the boards' poses (:func:`_candidates`, each with its own masks)
 _TWIN_SOLVE = PassSpec("other starts", rtol=_RTOL_TWIN)
 
 
-def _record(tr: "_Trial", name: str, res, limit: int | None, outcome: str = "") -> None:
+def _record(tr: "_Trial", name: str, res, limit: int | None, note: str = "") -> None:
     """Add the pass ``name``'s solve ``res`` to the trial's passes (``limit``: the pass's own step limit;
-    ``outcome``: what followed it)."""
-    code = int(res.result)
-    said = f"stopped at its limit of {limit} steps" if limit is not None and code == MAX_STEPS else RESULT_NAMES[code]
+    ``note``: what followed it)."""
     tr.passes.append(
         JointPass(
-            name, int(res.steps), said + outcome, float(res.initial_cost), float(res.cost), float(tr.scale), code, limit
+            name,
+            int(res.steps),
+            float(res.initial_cost),
+            float(res.cost),
+            float(tr.scale),
+            Outcome(int(res.result)),
+            limit,
+            [note] if note else [],
         )
     )
 
@@ -2025,7 +2077,7 @@ def to_calibration(result: CalibrationResult, obs: Observations) -> Calibration:
                 {"stage": r.name, "rms": _finite_or_none(r.rms), "unit": r.unit, "notes": r.notes} for r in st.reports
             ],
         },
-        "joint": {"passes": [p.__dict__ for p in result.passes], "timings_s": result.timings},
+        "joint": {"passes": [p.to_json() for p in result.passes], "timings_s": result.timings},
     }
     return Calibration(result.rig, board_poses, cvp, {**rep, "stages": stages}, result.undetermined_lasers)
 

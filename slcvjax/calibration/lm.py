@@ -38,6 +38,7 @@ residuals (a dense Jacobian) 82 s (124 steps), in one run of ``benchmarks/bench_
 (``benchmarks/results/calibrate_optimistix.json``).
 """
 
+import enum
 from typing import NamedTuple
 
 import equinox as eqx
@@ -62,13 +63,26 @@ RIM_MARGIN = 0.05  # the cone extended 5 % past its rim for residuals (see solve
 APEX_MARGIN = 0.05  # and 5 % of its height past the apex
 INVALID_PX = 30.0  # an invalid observation costs what a residual of this many px costs under the loss
 
-# result codes
-CONVERGED, MAX_STEPS, STALLED = 0, 1, 2
+
+class Outcome(enum.IntEnum):
+    """How a solve ended (its ``LMResult.result``): converged (the cost's relative decrease or the
+    gradient below the tolerance), stopped at the step limit, or stalled (no step lowers the cost)."""
+
+    CONVERGED = 0
+    MAX_STEPS = 1
+    STALLED = 2
+
+    @property
+    def label(self) -> str:
+        """The outcome in the reports' words: ``converged``, ``max_steps``, ``stalled``."""
+        return self.name.lower()
+
+
+CONVERGED, MAX_STEPS, STALLED = Outcome.CONVERGED, Outcome.MAX_STEPS, Outcome.STALLED
 # the damping a solve starts with, relative to the normal equations' diagonal: small, as every
 # pass but the first starts near its solution (measured over nine 9-15-view scenes: with 1e-3
 # the final pass took 9-10 steps to converge, with this 3-6, to the same solution)
 LAMBDA_START = 1e-5
-RESULT_NAMES = {CONVERGED: "converged", MAX_STEPS: "max_steps", STALLED: "stalled"}
 
 
 class Params(eqx.Module):
