@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from slcvjax.observations.published import mei_observations, ocam_observations, ocam_residuals
+from slcvjax.observations.published import mei_observations, ocam_observations, ocam_residuals, omnidir_observations
 
 DATA = Path(os.environ.get("SLCVJAX_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 OCAM = {
@@ -16,6 +16,7 @@ OCAM = {
     "MiniOmni": DATA / "ocamcalib_miniomni_catadioptric" / "MiniOmni_reference.json",
 }
 MEI = DATA / "mei_paracatadioptric" / "img_para_corners_calibDataMEI.json"
+OMNIDIR = DATA / "opencv_contrib_omnidir_corners" / "omni_calib_data.xml"
 
 
 def _need(path: Path) -> None:
@@ -43,6 +44,19 @@ def test_the_sets_read_as_observations():
     _need(MEI)
     mei = mei_observations(MEI, (1280, 1024))
     assert len(mei.views) == 10 and {b.shape for b in mei.boards.values()} == {(48, 3)}
+
+
+def test_omnidirs_tutorial_corners_read_as_observations(tmp_path):
+    _need(OMNIDIR)
+    obs = omnidir_observations(OMNIDIR, unit_mm=100.0)
+    assert obs.image_size == (1280, 960) and len(obs.views) == 15 and list(obs.boards) == ["chess0"]
+    grid = obs.boards["chess0"]
+    assert grid.shape == (54, 3) and np.allclose(np.sort(np.unique(np.round(grid[:, 0], 9))), 20.0 * np.arange(6))
+    assert all(v.boards["chess0"][0].shape == (54, 2) for v in obs.views)
+    bad = tmp_path / "bad.xml"
+    bad.write_text('<?xml version="1.0"?>\n<opencv_storage>\n<imageSize>\n  1 2</imageSize>\n</opencv_storage>\n')
+    with pytest.raises(ValueError, match="objectPoints: missing"):
+        omnidir_observations(bad)
 
 
 @pytest.mark.slow

@@ -8,7 +8,9 @@ Two JSON forms of third-party data (see each data folder's SOURCE.md):
   ``(xc, yc)`` as (row, col), the affine ``[[c, d], [e, 1]]``, the polynomial ``ss`` in ascending
   powers; a board point's pixel from the smallest positive root of ``f(rho) = (Z / n) rho``);
 - Mei's corner file (``x_image_points_1based`` [x = column, y = row] and ``X_board_points_mm``
-  per image): :func:`mei_observations`.
+  per image): :func:`mei_observations`;
+- OpenCV omnidir's calibration data (an OpenCV FileStorage XML of ``objectPoints``,
+  ``imagePoints`` and ``imageSize``, pixels already 0-based): :func:`omnidir_observations`.
 
 Pixels become this project's (OpenCV's, 0-based: ``u = col - 1``, ``v = row - 1``); every
 image is a catadioptric view with one chessboard seen through the mirror, no rim, no lasers,
@@ -93,3 +95,41 @@ def mei_observations(path: str | Path, image_size: tuple[int, int]) -> Observati
             boards[key] = X
         views.append(_view(img, key, x - 1.0))
     return Observations(tuple(image_size), 0.0, 0.0, 0, boards, [], views)
+
+
+def omnidir_observations(path: str | Path, unit_mm: float = 100.0) -> Observations:
+    """OpenCV omnidir's calibration data (``objectPoints``, ``imagePoints`` per view and
+    ``imageSize``, as its tutorial's ``omni_calib_data.xml``) as observations, one board per
+    distinct grid.  ``unit_mm``: the grid's unit in mm (the tutorial's file does not say; a fit
+    from views through the mirror alone holds the mirror's vertex radius as the scale's gauge,
+    so this sets only the boards' distances in that gauge).  Raises ``ValueError`` naming the
+    file and field where they are missing or do not match."""
+    import cv2
+
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    if not fs.isOpened():
+        raise ValueError(f"{path}: cannot be read as an OpenCV FileStorage file")
+    nodes = {k: fs.getNode(k) for k in ("objectPoints", "imagePoints", "imageSize")}
+    for k, n in nodes.items():
+        if n.empty():
+            raise ValueError(f"{path}: {k}: missing")
+    obj, img = nodes["objectPoints"], nodes["imagePoints"]
+    if obj.size() != img.size():
+        raise ValueError(f"{path}: objectPoints has {obj.size()} views, imagePoints {img.size()}")
+    size_node = nodes["imageSize"]
+    size = tuple(int(size_node.at(i).real()) for i in range(size_node.size()))
+    if len(size) != 2:
+        raise ValueError(f"{path}: imageSize: expected width and height, got {size}")
+    boards: dict[str, np.ndarray] = {}
+    views = []
+    for i in range(obj.size()):
+        X = np.asarray(obj.at(i).mat(), float).reshape(-1, 3) * unit_mm
+        x = np.asarray(img.at(i).mat(), float).reshape(-1, 2)
+        if len(X) != len(x):
+            raise ValueError(f"{path}: view {i}: {len(X)} objectPoints against {len(x)} imagePoints")
+        key = next((k for k, P in boards.items() if P.shape == X.shape and np.allclose(P, X)), None)
+        if key is None:
+            key = f"chess{len(boards)}"
+            boards[key] = X
+        views.append(_view(f"view{i:02d}", key, x))
+    return Observations(size, 0.0, 0.0, 0, boards, [], views)
