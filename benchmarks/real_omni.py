@@ -31,7 +31,9 @@ tutorial (``omni_calib_data.xml``: 15 views of a 6x9 grid of spacing 0.2 in a un
 give), fitted with that unit taken as 100 mm (20 mm squares) and, to show what the unit does to
 a fit whose scale's gauge is the mirror, as 10 and 1000 mm; beside the RMS 0.815 px that the
 data's helper got from ``cv2.omnidir.calibrate`` (OpenCV 5.0.0, flags 0; not published).
-Writes JSON naming the machine; ``--sets mei`` (or ``ocam``, ``omnidir``) runs those groups
+MiniOmni is also fitted before a telecentric lens (group ``ocam_telecentric``, both methods
+cross-validated): its perspective fit runs its focal length to ~1e4 px, the telecentric limit.
+Writes JSON naming the machine; ``--sets mei`` (or ``ocam``, ``ocam_telecentric``, ``omnidir``) runs those groups
 and keeps the others' entries of an existing ``--out`` file.
 """
 
@@ -103,7 +105,11 @@ def caustic(res, obs: Observations) -> dict:
 
 
 def _group(key: str) -> str:
-    return "mei" if key.startswith("Mei") else "omnidir" if key.startswith("omnidir") else "ocam"
+    if key.startswith("Mei"):
+        return "mei"
+    if key.startswith("omnidir"):
+        return "omnidir"
+    return "ocam_telecentric" if "telecentric" in key else "ocam"
 
 
 def corner_file_check(path: Path, detected: Observations) -> dict:
@@ -161,15 +167,22 @@ def main() -> None:
     ap.add_argument("--data", default=str(HERE.parent.parent / "shared" / "data"))
     ap.add_argument("--methods", default="1,2", help="OCamCalib methods whose corners are fitted")
     ap.add_argument("--cv-methods", default="2", help="those also cross-validated")
-    ap.add_argument("--sets", default="ocam,mei,omnidir", help="the groups: ocam (VMRImage, MiniOmni), mei, omnidir")
+    ap.add_argument(
+        "--sets",
+        default="ocam,ocam_telecentric,mei,omnidir",
+        help="groups: ocam (VMRImage, MiniOmni), ocam_telecentric (MiniOmni, a telecentric lens), mei, omnidir",
+    )
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
     data = Path(args.data)
     out = {"machine": machine(), "data": str(data), "sets": {}}
     rows = []
     groups = set(args.sets.split(","))
-    for name, folder in OCAM_SETS.items() if "ocam" in groups else ():
-        path = data / folder / f"{name}_reference.json"
+    ocam_runs = [(name, DEFAULT, "") for name in OCAM_SETS] if "ocam" in groups else []
+    if "ocam_telecentric" in groups:  # its perspective fit runs to fx ~ 1e4 px: the telecentric limit
+        ocam_runs.append(("MiniOmni", ({"kind": "hyperboloid"}, "telecentric"), ", telecentric hyperboloid"))
+    for name, model, label in ocam_runs:
+        path = data / OCAM_SETS[name] / f"{name}_reference.json"
         if not path.exists():
             print(f"{name}: {path} absent, skipped")
             continue
@@ -181,8 +194,9 @@ def main() -> None:
                 "ocamcalib_rms_px_reproduced": _rms_of(list(own.values())),
                 "ocamcalib_per_image_rms_px": {k: _rms_of([v]) for k, v in own.items()},
             }
-            key = f"{name} (OCamCalib method {method})"
-            out["sets"][key] = r = run_set(key, obs, ref, method in args.cv_methods.split(","))
+            key = f"{name}{label} (OCamCalib method {method})"
+            cv = method in args.cv_methods.split(",") or bool(label)
+            out["sets"][key] = r = run_set(key, obs, ref, cv, model)
             rows.append((key, r, ref["ocamcalib_rms_px_reproduced"], ref["ocamcalib_rms_px_reproduced"]))
     folder = data / MEI_FOLDER
     images = sorted(folder.glob("img_para_*.png"))
