@@ -33,8 +33,9 @@ a fit whose scale's gauge is the mirror, as 10 and 1000 mm; beside the RMS 0.815
 data's helper got from ``cv2.omnidir.calibrate`` (OpenCV 5.0.0, flags 0; not published).
 MiniOmni is also fitted before a telecentric lens (group ``ocam_telecentric``, both methods
 cross-validated): its perspective fit runs its focal length to ~1e4 px, the telecentric limit.
-Writes JSON naming the machine; ``--sets mei`` (or ``ocam``, ``ocam_telecentric``, ``omnidir``) runs those groups
-and keeps the others' entries of an existing ``--out`` file.
+Writes JSON naming the machine, each set with the commit it was measured at (``measured``);
+``--sets mei`` (or ``ocam``, ``ocam_telecentric``, ``omnidir``) and ``--names VMRImage`` run
+those groups and sets and keep the other entries of an existing ``--out`` file.
 """
 
 import argparse
@@ -172,14 +173,16 @@ def main() -> None:
         default="ocam,ocam_telecentric,mei,omnidir",
         help="groups: ocam (VMRImage, MiniOmni), ocam_telecentric (MiniOmni, a telecentric lens), mei, omnidir",
     )
+    ap.add_argument("--names", default=",".join(OCAM_SETS), help="the OCamCalib sets of the ocam groups")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
     data = Path(args.data)
     out = {"machine": machine(), "data": str(data), "sets": {}}
     rows = []
     groups = set(args.sets.split(","))
-    ocam_runs = [(name, DEFAULT, "") for name in OCAM_SETS] if "ocam" in groups else []
-    if "ocam_telecentric" in groups:  # its perspective fit runs to fx ~ 1e4 px: the telecentric limit
+    names = [n for n in args.names.split(",") if n in OCAM_SETS]
+    ocam_runs = [(name, DEFAULT, "") for name in names] if "ocam" in groups else []
+    if "ocam_telecentric" in groups and "MiniOmni" in names:  # its perspective fit runs to fx ~ 1e4 px
         ocam_runs.append(("MiniOmni", ({"kind": "hyperboloid"}, "telecentric"), ", telecentric hyperboloid"))
     for name, model, label in ocam_runs:
         path = data / OCAM_SETS[name] / f"{name}_reference.json"
@@ -235,11 +238,14 @@ def main() -> None:
     dirty = subprocess.run(["git", "status", "--porcelain", "slcvjax"], capture_output=True, text=True, cwd=HERE).stdout
     stamp = {"commit": commit.strip() + ("+changes" if dirty.strip() else ""), "date": time.strftime("%Y-%m-%d")}
     out["runs"] = {g: stamp for g in groups}
-    if args.out and Path(args.out).exists():  # the groups not run keep their entries
+    for r in out["sets"].values():
+        r["measured"] = stamp
+    if args.out and Path(args.out).exists():  # the sets not run keep their entries (and their stamps)
         old = json.loads(Path(args.out).read_text())
+        for k, r in old.get("sets", {}).items():
+            r.setdefault("measured", old.get("runs", {}).get(_group(k)))
         out["runs"] = old.get("runs", {}) | out["runs"]
-        kept_sets = {k: v for k, v in old.get("sets", {}).items() if _group(k) not in groups}
-        out["sets"] = kept_sets | out["sets"]
+        out["sets"] = old.get("sets", {}) | out["sets"]
         if "mei" not in groups and "mei_corner_file_check" in old:
             out["mei_corner_file_check"] = old["mei_corner_file_check"]
     print(f"\n{'set':34s} {'train':>7s} {'ref':>7s} {'held-out':>9s} {'ref':>7s} {'caustic':>8s} {'s/fit':>6s}")
