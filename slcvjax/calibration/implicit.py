@@ -325,6 +325,12 @@ def stationary_point(
     quadratically (typically 2-3 steps to ``tol`` in local coordinates).  Returns the
     point and the number of steps taken; raises ``ValueError`` when a step does not
     shrink (``params`` was not near a minimum).
+
+    Hand-written rather than optimistix's ``Newton``: each step is one Schur solve of the
+    problem's own second-order linearisation, where ``optimistix.root_find`` on the gradient
+    forms its dense Jacobian.  To the same point and cost, ours took 292 ms against 348 ms with
+    223 unknowns and 551 ms against 1357 ms with 511 (the preset), compiling in 9 s against
+    37 s (``benchmarks/bench_solvers.py``, ``benchmarks/results/solvers.json``).
     """
     layout, params, _, steps = _newton(params, pk, masks, loss, scale, kind_weight, max_steps, tol)
     return unpad_params(layout, params), steps

@@ -157,7 +157,7 @@ def _small_lm(res, retract, x0, dim: int, steps: int):
     lockstep.  Returns ``x`` and its sum of squares.
 
     Kept over optimistix's ``LevenbergMarquardt``: on the preset's rim circle (nine starts in
-    one vmapped call) it ran 69 ms against optimistix's 348 ms (16-80 steps) to the same best
+    one vmapped call) it ran 29 ms against optimistix's 185 ms (16-80 steps) to the same best
     RMS, in one run of ``benchmarks/bench_solvers.py`` (``benchmarks/results/solvers.json``).
     """
 

@@ -496,8 +496,8 @@ def fit_circle(q: np.ndarray, cov_q: np.ndarray | None = None, weighted: bool = 
     (from its own 2x2 block, along the direction from the algebraic centre).
     Raises ``ValueError`` for fewer than 3 points or collinear points.
 
-    Gauss-Newton in NumPy rather than a compiled solver: 16 poses' fits took 5.3 ms in all,
-    optimistix's jitted LM 2.8 ms after a 1.6 s compilation that each new process pays
+    Gauss-Newton in NumPy rather than a compiled solver: 16 poses' fits took 4.5 ms in all,
+    optimistix's jitted LM 0.95 ms after a 0.72 s compilation that each new process pays
     (``benchmarks/bench_solvers.py``, ``benchmarks/results/solvers.json``).
     """
     q = np.asarray(q, dtype=float).reshape(-1, 2)
