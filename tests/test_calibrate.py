@@ -526,3 +526,19 @@ def test_a_camera_alone_calibrates_from_its_corners_without_a_mirror(exact):
     p = _truth_params(truth, pk)
     with pytest.raises(ValueError, match="camera-only"):
         _lm.residual_rows(_lm.Params(sj.Rig.camera_only(truth.rig.camera), p.poses, p.chess), pk)
+
+
+def test_a_solution_that_predicts_no_observation_is_refused(exact):
+    """A fit that ends where every observation falls off the mirror (here: the mirror moved
+    behind the camera, no direct views) has no covariance to report: it is refused, not a
+    TypeError deep in the sandwich."""
+    obs, truth = exact
+    obs = dataclasses.replace(obs, calibration_views=[])
+    pk = pack(obs)
+    poses = stack_poses([truth.board_poses[v][b] for v, b in pk.pose_keys])
+    no_chess = sj.Pose(jnp.zeros((0, 3, 3)), jnp.zeros((0, 3)))
+    m = truth.rig.mirror
+    away = sj.Rig(truth.rig.camera, type(m).create([0.0, 0.0, -500.0], m.axis, m.radius, m.height), truth.rig.lasers)
+    away_params = _lm.Params(away, poses, no_chess)
+    with pytest.raises(sj.CalibrationError, match="predicts none of the observations"):
+        covariance_of(away_params, pk, _lm.make_masks(away_params), "huber", 1.0)

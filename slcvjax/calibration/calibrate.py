@@ -256,6 +256,11 @@ def _sandwich_of(layout: Layout, full, parts, masks: Masks) -> "tuple[Covariance
         raw = [np.asarray(a) for a in _raw_normal_jit(p.normal, p.seen_glob, p.seen_blocks)]
         s2 = sig**2 if np.isfinite(sig) else pooled2
         meat = [s2 * a for a in raw] if meat is None else [m + s2 * a for m, a in zip(meat, raw, strict=True)]
+    if meat is None:
+        raise CalibrationError(
+            "the fit ended where it predicts none of the observations (each falls off the mirror or the "
+            "sensor): the model does not fit these data (another mirror kind or camera projection may)"
+        )
     cov = _sandwich_jit(full, type(full.normal)(*meat), padded)
     return _unpad_covariance(layout, cov), noise
 
@@ -1016,11 +1021,16 @@ def _first_pass(d: _Lockstep) -> None:
 
 def _reflip(d: _Lockstep) -> None:
     """The boards' flips decided again on the refined geometry, then A2 where any board turned
-    (otherwise pass A's poses already fit the dots on this geometry)."""
+    (otherwise pass A's poses already fit the dots on this geometry).  Where a board's dots no
+    longer back-project onto the mirror at A's solution, the trial keeps A's poses (noted)."""
     again = []
     for i, tr in enumerate(d.trials):
         p = tr.params
-        poses = stack_poses(board_poses(p.rig.camera, p.rig.mirror, tr.pk, start=p.poses)[0])
+        try:
+            poses = stack_poses(board_poses(p.rig.camera, p.rig.mirror, tr.pk, start=p.poses)[0])
+        except CalibrationError as e:
+            tr.passes[-1].notes.append(f"the boards' flips not decided again: {e}")
+            continue
         if np.any(_turned(poses, p.poses)):
             tr.params = Params(p.rig, poses, p.chess)
             again.append(i)
