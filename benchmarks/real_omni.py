@@ -31,8 +31,9 @@ tutorial (``omni_calib_data.xml``: 15 views of a 6x9 grid of spacing 0.2 in a un
 give), fitted with that unit taken as 100 mm (20 mm squares) and, to show what the unit does to
 a fit whose scale's gauge is the mirror, as 10 and 1000 mm; beside the RMS 0.815 px that the
 data's helper got from ``cv2.omnidir.calibrate`` (OpenCV 5.0.0, flags 0; not published).
-MiniOmni is also fitted before a telecentric lens (group ``ocam_telecentric``, both methods
-cross-validated): its perspective fit runs its focal length to ~1e4 px, the telecentric limit.
+Both OCamCalib sets are also fitted before a telecentric lens (group ``ocam_telecentric``,
+both methods cross-validated): MiniOmni's perspective fit runs its focal length to ~1e4 px,
+the telecentric limit.
 Writes JSON naming the machine, each set with the commit it was measured at (``measured``);
 ``--sets mei`` (or ``ocam``, ``ocam_telecentric``, ``omnidir``) and ``--names VMRImage`` run
 those groups and sets and keep the other entries of an existing ``--out`` file.
@@ -171,7 +172,7 @@ def main() -> None:
     ap.add_argument(
         "--sets",
         default="ocam,ocam_telecentric,mei,omnidir",
-        help="groups: ocam (VMRImage, MiniOmni), ocam_telecentric (MiniOmni, a telecentric lens), mei, omnidir",
+        help="groups: ocam (VMRImage, MiniOmni), ocam_telecentric (the same, a telecentric lens), mei, omnidir",
     )
     ap.add_argument("--names", default=",".join(OCAM_SETS), help="the OCamCalib sets of the ocam groups")
     ap.add_argument("--out", default=None)
@@ -182,8 +183,9 @@ def main() -> None:
     groups = set(args.sets.split(","))
     names = [n for n in args.names.split(",") if n in OCAM_SETS]
     ocam_runs = [(name, DEFAULT, "") for name in names] if "ocam" in groups else []
-    if "ocam_telecentric" in groups and "MiniOmni" in names:  # its perspective fit runs to fx ~ 1e4 px
-        ocam_runs.append(("MiniOmni", ({"kind": "hyperboloid"}, "telecentric"), ", telecentric hyperboloid"))
+    if "ocam_telecentric" in groups:  # MiniOmni's perspective fit runs to fx ~ 1e4 px: the telecentric limit
+        tele = ({"kind": "hyperboloid"}, "telecentric")
+        ocam_runs += [(name, tele, ", telecentric hyperboloid") for name in names]
     for name, model, label in ocam_runs:
         path = data / OCAM_SETS[name] / f"{name}_reference.json"
         if not path.exists():
