@@ -920,7 +920,7 @@ class _Lockstep:
             if scale is not None:
                 tr.scale = scale
             elif spec.scale_floor is not None:
-                tr.scale = self.loss_scale or 3.0 * max(robust_sigma(tr.params, tr.pk), spec.scale_floor)
+                self.rescale(tr, spec.scale_floor)
         jobs = [_job(trials[i], trials[i].params, spec) for i in chosen]
         own = spec.steps if spec.steps is not None and spec.steps < self.max_steps else None  # the pass's own limit
         solved = self.solver(jobs, spec.loss or self.loss, own or self.max_steps, size=len(trials))
@@ -929,6 +929,11 @@ class _Lockstep:
             trials[i].params = unpad_params(trials[i].layout, res.params)
         if self.bar is not None:
             self.bar.set_postfix_str(spec.name.split(":")[0])
+
+    def rescale(self, tr: _Trial, floor: float) -> None:
+        """The trial's loss scale where it stands: the user's, else 3 x the robust noise sigma,
+        at least ``floor`` px."""
+        tr.scale = self.loss_scale or 3.0 * max(robust_sigma(tr.params, tr.pk), floor)
 
     def other_starts(self, chosen: list[int], turned_only: bool, pass_loss: str | None = None) -> list[int]:
         """Each board pose of the ``chosen`` trials swapped for its flipped twin, or for its pose
@@ -1046,7 +1051,7 @@ def _refit_lasers(d: _Lockstep) -> None:
         p = tr.params
         fit = fit_lasers(p.rig.camera, p.rig.mirror, tr.pk, unstack_poses(p.poses), tr.obs.n_lasers)
         tr.params = Params(p.rig.with_lasers(fit.lasers), p.poses, p.chess)
-        tr.undetermined = tuple(int(i) for i in np.flatnonzero(fit.undetermined))
+        tr.undetermined = fit.held
         tr.masks = make_masks(tr.params, tr.freeze, tr.estimate, held_lasers=tr.undetermined)
         _relabel_spots(tr, fit)
 
@@ -1054,7 +1059,7 @@ def _refit_lasers(d: _Lockstep) -> None:
 def _rescale(d: _Lockstep) -> None:
     """The loss scale re-estimated at B's solution: the user's, else 3 x the robust noise sigma."""
     for tr in d.trials:
-        tr.scale = d.loss_scale or 3.0 * max(robust_sigma(tr.params, tr.pk), PASS_B.scale_floor)
+        d.rescale(tr, PASS_B.scale_floor)
 
 
 def _leave_outliers(d: _Lockstep) -> None:

@@ -421,6 +421,11 @@ class LaserFit:
     threshold: float
     undetermined: np.ndarray  # (L,) bool: lasers whose spots cannot fix a line (held, see fit_lasers)
 
+    @property
+    def held(self) -> tuple[int, ...]:
+        """The undetermined lasers' indices."""
+        return tuple(int(i) for i in np.flatnonzero(self.undetermined))
+
 
 def spot_line_residuals(org, dirs, metric, normals, origins, points, directions) -> np.ndarray:
     """(S, L) px: each spot's distance from where each line ``(points, directions)`` meets
@@ -654,8 +659,7 @@ def staged(obs: Observations, camera: Camera | None = None, pk: Packed | None = 
         pk = pack(obs)
         rep_p.notes.append(f"{n_set} of {n_open} spots without a board put on the first board plane their ray meets")
     fit = fit_lasers(camera, mirror, pk, poses, obs.n_lasers)
-    undetermined = tuple(int(i) for i in np.flatnonzero(fit.undetermined))
-    return Staged(camera, mirror, fit.lasers, poses, chess, reports + [rep_m, rep_p, fit.report], pk, undetermined)
+    return Staged(camera, mirror, fit.lasers, poses, chess, reports + [rep_m, rep_p, fit.report], pk, fit.held)
 
 
 def assign_spot_boards(
