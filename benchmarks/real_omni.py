@@ -10,8 +10,10 @@ refiner, as OpenCV omnidir's reference run; the corner file that comes with the 
 with the images in three views, see ``mei_corner_file_check`` in the JSON).  Each set is
 calibrated as a user without a datasheet would: the central start (:mod:`slcvjax.calibration.central`: a
 hyperboloid, vertex radius 20 mm as the scale's gauge), then the joint non-central fit of camera
-(pinhole, five distortion terms), mirror pose and board poses under the plain least-squares
-loss (``loss="linear"``, every corner kept, as the published fits).  Mei's set is also fitted as
+(five distortion terms), mirror pose and board poses under the plain least-squares
+loss (``loss="linear"``, every corner kept, as the published fits); the camera's projection
+``auto``: a telecentric and a pinhole camera both fitted, the pinhole kept where an F-test of its
+depth says the corners need it (``slcvjax.calibration.calibrate.perspective_test``).  Mei's set is also fitted as
 what its name says, a paraboloid before a telecentric lens, and with ``mirror_shape.kind =
 "auto"`` (the kind of the least 5-fold held-out error).
 
@@ -19,8 +21,9 @@ Reports per set and method:
 - train RMS (``sqrt(mean |e|^2)`` over every corner) beside OCamCalib's published ``rms_px``,
   reproduced here from its model and extrinsics (``slcvjax.observations.published.ocam_project``);
 - held-out RMS by leave-one-image-out cross-validation: the rig fitted (central start
-  included) without the image, then camera and mirror held and only the image's board pose
-  fitted; beside OCamCalib's model on the same images (which saw them all);
+  included; the projection the fit on every image chose) without the image, then camera and
+  mirror held and only the image's board pose fitted; beside OCamCalib's model on the same
+  images (which saw them all);
 - how non-central the calibrated camera is: the reflected rays of the corners' pixels against
   the single point nearest to them all (the caustic's size: RMS and largest distance, mm of the
   gauge), and the camera's distance from that point;
@@ -70,7 +73,7 @@ MEI_OPENCV_VIEWS = (0, 1, 3, 4, 6, 7, 8, 9)  # the views OpenCV omnidir kept (SO
 MEI_BOARD, MEI_SQUARE = (6, 8), 42.0  # inner corners, mm (SOURCE.md)
 OMNIDIR_FILE = "opencv_contrib_omnidir_corners/omni_calib_data.xml"
 OMNIDIR_HELPER_RMS = 0.8147  # cv2.omnidir.calibrate on that file, by the data's helper (SOURCE.md)
-DEFAULT = ({"kind": "hyperboloid"}, "perspective")  # the shape unknown: searched
+DEFAULT = ({"kind": "hyperboloid"}, "auto")  # the shape unknown: searched; the projection chosen (F-test)
 
 
 def _rms_of(errs: list[np.ndarray]) -> float:
@@ -129,7 +132,7 @@ def corner_file_check(path: Path, detected: Observations) -> dict:
 
 def run_set(name: str, obs: Observations, reference: dict, cv: bool, model=DEFAULT) -> dict:
     res, obs_s, secs = fit(obs, model)
-    start = res.staged.reports[0]
+    start = next(r for r in res.staged.reports if r.name == "central_start")
     rep = report(res, obs_s)["residuals"]
     m = res.rig.mirror
     out = {
@@ -141,8 +144,14 @@ def run_set(name: str, obs: Observations, reference: dict, cv: bool, model=DEFAU
         "converged": res.converged and all(p.finished for p in res.passes),
         "passes": [[p.name, p.steps, p.result] for p in res.passes],
         "seconds": secs,
-        "model": {"mirror_shape": model[0], "camera_projection": model[1], "fitted_kind": res.rig.mirror.kind},
+        "model": {
+            "mirror_shape": model[0],
+            "camera_projection": model[1],
+            "fitted_kind": res.rig.mirror.kind,
+            "fitted_projection": res.rig.camera.projection,
+        },
         "start": {"rms_px": start.rms, "notes": start.notes},
+        "stages": [{"name": r.name, "rms": r.rms, "unit": r.unit, "notes": r.notes} for r in res.staged.reports],
         "camera": [float(x) for x in np.asarray(res.rig.camera.params())],
         "mirror": {"apex": np.asarray(m.apex).tolist(), "axis": np.asarray(m.axis).tolist(), "conic": float(m.conic)},
         "caustic": caustic(res, obs_s),
@@ -153,7 +162,7 @@ def run_set(name: str, obs: Observations, reference: dict, cv: bool, model=DEFAU
         for k in tqdm(range(len(obs.views)), desc=f"{name} leave-one-out", leave=False):
             train = dataclasses.replace(obs, views=obs.views[:k] + obs.views[k + 1 :])
             held = dataclasses.replace(obs, views=[obs.views[k]])
-            r_k = fit(train, model)[0]
+            r_k = fit(train, (model[0], res.rig.camera.projection))[0]
             rms_k, n_k, bad_k = held_out_rms(r_k.rig, held)
             per_image[obs.views[k].name] = {"rms_px": rms_k, "corners": n_k, "invalid": bad_k}
             errs.append((rms_k, n_k))

@@ -131,6 +131,8 @@ def test_a_telecentric_calibration_and_observations_round_trip(tmp_path):
     obs, _ = _observations(Rig(cam, mirror, None), n_views=2, noise=0.0)
     write_observations(tmp_path / "obs.json", obs)
     assert read_observations(tmp_path / "obs.json").camera_projection == "telecentric"
+    write_observations(tmp_path / "obs_auto.json", dataclasses.replace(obs, camera_projection="auto"))
+    assert read_observations(tmp_path / "obs_auto.json").camera_projection == "auto"
     doc = json.loads((tmp_path / "obs.json").read_text())
     doc["camera_projection"] = "orthographic"
     (tmp_path / "bad_obs.json").write_text(json.dumps(doc))
@@ -202,3 +204,65 @@ def test_a_telecentric_camera_needs_a_conic_mirror_seen_through():
     obs = dataclasses.replace(obs, camera_projection="telecentric")
     with pytest.raises(CalibrationError, match="camera_projection"):
         calibrate(obs)
+
+
+def test_the_perspective_test_is_an_f_test():
+    """:func:`perspective_test`'s p-value against scipy's F distribution, from the two fits'
+    sigma and degrees of freedom; a pinhole that fits no better gives p = 1."""
+    from types import SimpleNamespace
+
+    from scipy.stats import f as f_dist
+
+    from slcvjax.calibration.calibrate import perspective_test
+
+    def fit(sigma, dof):
+        return SimpleNamespace(cov=SimpleNamespace(sigma=np.float64(sigma), dof=np.int64(dof)))
+
+    for s_t, s_p, dof_t, dof_p in ((0.31, 0.30, 371, 370), (0.052, 0.05, 900, 897), (0.5, 0.4999, 50, 49)):
+        pval, q, dof = perspective_test(fit(s_t, dof_t), fit(s_p, dof_p))
+        S_t, S_p = s_t**2 * dof_t, s_p**2 * dof_p
+        F = (S_t - S_p) / (dof_t - dof_p) / (S_p / dof_p)
+        assert (q, dof) == (dof_t - dof_p, dof_p)
+        np.testing.assert_allclose(pval, f_dist.sf(F, dof_t - dof_p, dof_p), rtol=1e-9)
+    assert perspective_test(fit(0.30, 371), fit(0.31, 370))[0] == 1.0
+
+
+@pytest.mark.slow
+def test_auto_keeps_the_perspective_only_where_the_views_need_it():
+    """``camera_projection = "auto"`` through a paraboloid (its kind given): views rendered
+    through a pinhole 32 mm below the mirror (non-central: a telecentric camera cannot show
+    their parallax) keep the pinhole; the same walls seen by a telecentric camera are left
+    telecentric.  The test's level is 5 %: one draw of noise in twenty of a telecentric truth
+    keeps the pinhole by design (this draw is not one of them).  The stage ``camera_projection``
+    reports both fits."""
+    from slcvjax.calibration.calibrate import calibrate
+
+    persp = Rig(
+        Camera.create(330.0, 331.0, 321.0, 238.0, [-0.05, 0.01, 0.0, 0.0, 0.0], 640, 480),
+        ConicMirror.of_kind("paraboloid", [0.3, -0.2, 32.0], [0.01, -0.008, 1.0], 16.0, 30.0),
+        None,
+    )
+    tele = Rig(
+        Camera.create(360.0, 361.0, 322.0, 241.0, [-0.08, 0.01, 0.001, -0.001, 0.0], 640, 480, True, 20.0),
+        ConicMirror.create([0.6, -0.4, 60.0], [0.012, -0.008, 1.0], 1.0 / 20.0, -1.0, 32.0),
+        None,
+    )
+    for rig, want in ((persp, "perspective"), (tele, "telecentric")):
+        obs, _ = _observations(rig, n_views=8, noise=0.05, seed=5)
+        obs = dataclasses.replace(obs, camera_projection="auto", mirror_shape={"kind": "paraboloid"})
+        res = calibrate(obs)
+        stage = res.staged.reports[0]
+        assert stage.name == "camera_projection" and any("telecentric: sigma" in n for n in stage.notes)
+        assert res.rig.camera.projection == want, stage.notes
+        assert res.converged
+
+
+def test_auto_projection_needs_views_through_a_conic_mirror():
+    """``camera_projection = "auto"`` with direct views (or a cone): a clear error, naming the field."""
+    from slcvjax.calibration.calibrate import calibrate
+    from slcvjax.calibration.staged import CalibrationError
+    from slcvjax.observations.simulate import paper_rig
+
+    obs, _ = simulate(box_scene(paper_rig(2), paper_views(2), n_chess_views=3), noise=0.0, seed=1)
+    with pytest.raises(CalibrationError, match="camera_projection: auto"):
+        calibrate(dataclasses.replace(obs, camera_projection="auto"))

@@ -500,6 +500,12 @@ def calibrate(
     """
     group = rigid_group(obs, rigid)
     telecentric = obs.camera_projection == "telecentric"
+    through = camera is None and mirror is None and not obs.calibration_views and obs.mirror_shape is not None
+    if obs.camera_projection == "auto" and not (through and obs.mirror_shape["kind"] != "cone"):
+        raise CalibrationError(
+            "camera_projection: auto is chosen from views through a conic mirror alone "
+            "(no calibration_views, no camera or mirror to start from, a mirror_shape other than the cone)"
+        )
     if camera is not None and camera.telecentric != telecentric:
         raise CalibrationError(
             f"camera_projection: the observations say {obs.camera_projection}, the camera given is {camera.projection}"
@@ -517,7 +523,7 @@ def calibrate(
         )
     if auto:
         res = _auto_kind(obs, freeze, loss, loss_scale, max_steps)
-    elif camera is None and mirror is None and not obs.calibration_views and obs.mirror_shape is not None:
+    elif through:
         res = _through_the_mirror(obs, freeze, loss, loss_scale, max_steps)
     else:
         res = _calibrate_lockstep([obs], camera, freeze, loss, loss_scale, max_steps, _solve_loop, mirror=mirror)[0]
@@ -623,11 +629,38 @@ def _shape_unknowns(shape: dict, freeze) -> tuple[set, set]:
     return freeze, estimate
 
 
+PROJECTION_TEST_LEVEL = 0.05  # the F-test's level at which the perspective term is kept
+
+
+def perspective_test(tele: "CalibrationResult", persp: "CalibrationResult") -> tuple[float, int, int]:
+    """``(p-value, extra unknowns, dof)`` of the F-test of a telecentric fit against the
+    perspective one of the same views: a telecentric camera is a pinhole's limit at an infinite
+    distance, so the pinhole's extra unknowns (its depth, held before a telecentric lens: the
+    gauge of parallel rays) nest it.  ``F = ((S_t - S_p) / q) / (S_p / dof_p)``, ``S`` the
+    weighted squared residuals (``sigma^2 dof``), ``q = dof_t - dof_p``; a small p-value says the
+    views need the perspective.  ``(0, q, dof_p)`` where ``q < 1`` and the pinhole fits better."""
+    s_t = float(tele.cov.sigma) ** 2 * int(tele.cov.dof)
+    s_p = float(persp.cov.sigma) ** 2 * int(persp.cov.dof)
+    q, dof = int(tele.cov.dof) - int(persp.cov.dof), int(persp.cov.dof)
+    if q < 1 or dof < 1 or s_p <= 0.0:
+        return (0.0 if s_p < s_t else 1.0), q, dof
+    f = max((s_t - s_p) / q / (s_p / dof), 0.0)
+    # P(F(q, dof) > f) = I_x(dof/2, q/2), x = dof / (dof + q f): the regularised incomplete beta
+    pval = float(jax.scipy.special.betainc(dof / 2.0, q / 2.0, dof / (dof + q * f)))
+    return pval, q, dof
+
+
 def _through_the_mirror(obs: Observations, freeze, loss, loss_scale, max_steps) -> "CalibrationResult":
     """A rig seen only through its mirror (no direct views): the joint passes from each central
     start (:func:`slcvjax.calibration.central.central_start`), the lowest final cost kept.  Where the shape leaves
     out the conic constant, the start searches it and the joint passes estimate it (the vertex
-    radius held: the scale's gauge)."""
+    radius held: the scale's gauge).  ``camera_projection = "auto"`` fits a telecentric and a
+    perspective camera and keeps the perspective one only where :func:`perspective_test` says the
+    views need it (p-value below :data:`PROJECTION_TEST_LEVEL`; fewer observations off the model
+    first): the pinhole's depth is otherwise a near-gauge that drifts towards the telecentric
+    limit and costs held-out accuracy."""
+    if obs.camera_projection == "auto":
+        return _auto_projection(obs, freeze, loss, loss_scale, max_steps)
     shape = obs.mirror_shape
     freeze, estimate = _shape_unknowns(shape, freeze)
     kind = shape["kind"]
@@ -668,6 +701,49 @@ def _through_the_mirror(obs: Observations, freeze, loss, loss_scale, max_steps) 
             rim = jnp.asarray(0.999 / (c * np.sqrt(k1)))
             best.params = eqx.tree_at(lambda p: p.rig.mirror.radius, best.params, rim)
     return best
+
+
+def _auto_projection(obs: Observations, freeze, loss, loss_scale, max_steps) -> "CalibrationResult":
+    """:func:`_through_the_mirror` for ``camera_projection = "auto"``."""
+    fits: dict[str, CalibrationResult] = {}
+    failed: dict[str, str] = {}
+    for proj in ("telecentric", "perspective"):
+        try:
+            fits[proj] = _through_the_mirror(
+                dataclasses.replace(obs, camera_projection=proj), freeze, loss, loss_scale, max_steps
+            )
+        except CalibrationError as e:
+            failed[proj] = str(e)
+    if not fits:
+        raise CalibrationError(
+            "camera_projection: auto: neither projection fits these views ("
+            + "; ".join(f"{k}: {v}" for k, v in failed.items())
+            + ")"
+        )
+    notes = [f"{k}: failed ({v})" for k, v in failed.items()]
+    if len(fits) == 1:
+        (best,) = fits
+    else:
+        tele, persp = fits["telecentric"], fits["perspective"]
+        off = {k: int(np.sum(~_per_observation(r.params, r.packed)[2])) for k, r in fits.items()}
+        pval, q, dof = perspective_test(tele, persp)
+        for k, r in fits.items():
+            notes.append(
+                f"{k}: sigma {float(r.cov.sigma):.4f} px, dof {int(r.cov.dof)}"
+                + (f", {off[k]} observation(s) off the model" if off[k] else "")
+            )
+        if off["telecentric"] != off["perspective"]:
+            best = min(fits, key=lambda k: off[k])
+            notes.append(f"chosen: {best} (fewer observations off the model)")
+        else:
+            best = "perspective" if pval < PROJECTION_TEST_LEVEL else "telecentric"
+            notes.append(
+                f"chosen: {best} (F-test of the perspective's {q} extra unknown(s): p = {pval:.3g}, "
+                f"kept below {PROJECTION_TEST_LEVEL:g})"
+            )
+    res = fits[best]
+    res.staged.reports.insert(0, StageReport("camera_projection", float(res.cov.sigma), "px (sigma)", notes))
+    return res
 
 
 def rigid_group(obs: Observations, rigid: "bool | list[str]") -> list[str]:

@@ -105,7 +105,14 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("--vertex-radius", type=float, help="the mirror's vertex radius in mm (default: 20, the gauge)")
     o.add_argument("--conic", type=float, help="the mirror's conic constant, where known")
     o.add_argument("--rim", type=float, help="the mirror's rim radius in mm, where known")
-    o.add_argument("--telecentric", action="store_true", help="the camera's lens is telecentric (orthographic)")
+    o.add_argument(
+        "--projection",
+        default="auto",
+        choices=["auto", "perspective", "telecentric"],
+        help="the camera's lens: a pinhole (perspective), telecentric (orthographic), or auto (default: both "
+        "fitted, the perspective kept where an F-test of its depth says the images need it)",
+    )
+    o.add_argument("--telecentric", action="store_true", help="the same as --projection telecentric")
     o.add_argument("--loss", default="huber", choices=["huber", "cauchy", "linear"])
     o.add_argument("--observations", help="also write the detected corners as slcv-observations/1")
     o.add_argument("--plot", help="the residual plot's PNG (default: OUT's name with _residuals.png)")

@@ -20,7 +20,7 @@ def run(args) -> int:
         if val is not None:
             shape[key] = val
     obs, missing = omni_observations(
-        args.images, pattern, args.square, shape, "telecentric" if args.telecentric else "perspective"
+        args.images, pattern, args.square, shape, "telecentric" if args.telecentric else args.projection
     )
     n = len(obs.views)
     print(f"{n} of {len(args.images)} images show the {pattern[0]}x{pattern[1]} board")

@@ -181,7 +181,8 @@ class Observations:
     # the mirror's shape (``slcvjax.geometry.mirror.shape_json``'s form) where it is not the cone of
     # ``mirror_radius`` and ``mirror_height`` (the rim circle's radius and sag, for every kind)
     mirror_shape: dict | None = None
-    # ``perspective`` (a pinhole) or ``telecentric`` (orthographic: see ``slcvjax.geometry.camera``)
+    # ``perspective`` (a pinhole), ``telecentric`` (orthographic: see ``slcvjax.geometry.camera``)
+    # or ``auto`` (chosen by the calibration: ``slcvjax.calibration.calibrate.perspective_test``)
     camera_projection: str = "perspective"
 
 
@@ -287,8 +288,8 @@ def read_observations(path: str | os.PathLike) -> Observations:
         ctx.fail("units", f"expected 'mm', got {units!r}")
     (w, h), radius, height, n_lasers, shape = read_sensor_fields(ctx, doc)
     projection = ctx.get(doc, "camera_projection", "", str, optional=True) or "perspective"
-    if projection not in PROJECTIONS:
-        ctx.fail("camera_projection", f"expected one of {', '.join(PROJECTIONS)}, got {projection!r}")
+    if projection not in PROJECTIONS + ("auto",):
+        ctx.fail("camera_projection", f"expected one of {', '.join(PROJECTIONS)} or auto, got {projection!r}")
 
     boards_doc = ctx.get(doc, "boards", "", dict)
     boards: dict[str, np.ndarray] = {}
