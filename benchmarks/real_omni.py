@@ -34,11 +34,8 @@ tutorial (``omni_calib_data.xml``: 15 views of a 6x9 grid of spacing 0.2 in a un
 give), fitted with that unit taken as 100 mm (20 mm squares) and, to show what the unit does to
 a fit whose scale's gauge is the mirror, as 10 and 1000 mm; beside the RMS 0.815 px that the
 data's helper got from ``cv2.omnidir.calibrate`` (OpenCV 5.0.0, flags 0; not published).
-Both OCamCalib sets are also fitted before a telecentric lens (group ``ocam_telecentric``,
-both methods cross-validated): MiniOmni's perspective fit runs its focal length to ~1e4 px,
-the telecentric limit.
 Writes JSON naming the machine, each set with the commit it was measured at (``measured``);
-``--sets mei`` (or ``ocam``, ``ocam_telecentric``, ``omnidir``) and ``--names VMRImage`` run
+``--sets mei`` (or ``ocam``, ``omnidir``) and ``--names VMRImage`` run
 those groups and sets and keep the other entries of an existing ``--out`` file.
 """
 
@@ -114,7 +111,7 @@ def _group(key: str) -> str:
         return "mei"
     if key.startswith("omnidir"):
         return "omnidir"
-    return "ocam_telecentric" if "telecentric" in key else "ocam"
+    return "ocam"
 
 
 def corner_file_check(path: Path, detected: Observations) -> dict:
@@ -177,11 +174,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", default=str(HERE.parent.parent / "shared" / "data"))
     ap.add_argument("--methods", default="1,2", help="OCamCalib methods whose corners are fitted")
-    ap.add_argument("--cv-methods", default="2", help="those also cross-validated")
+    ap.add_argument("--cv-methods", default="1,2", help="those also cross-validated")
     ap.add_argument(
         "--sets",
-        default="ocam,ocam_telecentric,mei,omnidir",
-        help="groups: ocam (VMRImage, MiniOmni), ocam_telecentric (the same, a telecentric lens), mei, omnidir",
+        default="ocam,mei,omnidir",
+        help="groups: ocam (VMRImage, MiniOmni), mei, omnidir",
     )
     ap.add_argument("--names", default=",".join(OCAM_SETS), help="the OCamCalib sets of the ocam groups")
     ap.add_argument("--out", default=None)
@@ -191,11 +188,7 @@ def main() -> None:
     rows = []
     groups = set(args.sets.split(","))
     names = [n for n in args.names.split(",") if n in OCAM_SETS]
-    ocam_runs = [(name, DEFAULT, "") for name in names] if "ocam" in groups else []
-    if "ocam_telecentric" in groups:  # MiniOmni's perspective fit runs to fx ~ 1e4 px: the telecentric limit
-        tele = ({"kind": "hyperboloid"}, "telecentric")
-        ocam_runs += [(name, tele, ", telecentric hyperboloid") for name in names]
-    for name, model, label in ocam_runs:
+    for name in names if "ocam" in groups else []:
         path = data / OCAM_SETS[name] / f"{name}_reference.json"
         if not path.exists():
             print(f"{name}: {path} absent, skipped")
@@ -208,9 +201,9 @@ def main() -> None:
                 "ocamcalib_rms_px_reproduced": _rms_of(list(own.values())),
                 "ocamcalib_per_image_rms_px": {k: _rms_of([v]) for k, v in own.items()},
             }
-            key = f"{name}{label} (OCamCalib method {method})"
-            cv = method in args.cv_methods.split(",") or bool(label)
-            out["sets"][key] = r = run_set(key, obs, ref, cv, model)
+            key = f"{name} (OCamCalib method {method})"
+            cv = method in args.cv_methods.split(",")
+            out["sets"][key] = r = run_set(key, obs, ref, cv)
             rows.append((key, r, ref["ocamcalib_rms_px_reproduced"], ref["ocamcalib_rms_px_reproduced"]))
     folder = data / MEI_FOLDER
     images = sorted(folder.glob("img_para_*.png"))
