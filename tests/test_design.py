@@ -20,6 +20,33 @@ def plan():
 
 
 @pytest.mark.slow
+def test_a_padded_plan_predicts_as_the_unpadded_one_and_another_size_compiles_nothing(plan, compilations):
+    """Three views padded to the bucket of four (and the direct views to theirs) against the
+    same plan unpadded: the same prediction and gradient, none for the padded views; then the
+    module's four-view plan, in the same buckets, compiles nothing."""
+    views = paper_views(3)
+    small = _design.Plan.from_scene(box_scene(paper_rig(3), views), views, noise=0.5)
+    padded, plain = _design._Compiled(small), _design._Compiled(small, pad=False)
+    assert (padded.cap, plain.cap) == (4, 3)
+    assert padded.chess.t.shape[0] > plain.chess.t.shape[0]  # the direct views padded too
+    a, b = padded.predict(views), plain.predict(views)
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-9)
+    args = (a[0], a[1], jnp.asarray(0.5))
+    fa, ga = padded.value_and_grad(padded.u_of(views), *args)
+    fb, gb = plain.value_and_grad(plain.u_of(views), *args)
+    assert float(fa) == pytest.approx(float(fb), rel=1e-9)
+    np.testing.assert_allclose(np.asarray(ga)[:3], np.asarray(gb), rtol=1e-7, atol=1e-9 * float(jnp.max(jnp.abs(gb))))
+    assert np.all(np.asarray(ga)[3:] == 0.0)  # the padded view moves nowhere
+    _, p = plan
+    with compilations() as compiled:
+        c = _design._Compiled(p)
+        pos, ang, _, _ = c.predict(p.views)
+        c.value_and_grad(c.u_of(p.views), pos, ang, jnp.asarray(0.5))
+    assert compiled == [], "\n".join(compiled)
+
+
+@pytest.mark.slow
 def test_prediction_equals_the_bound_of_the_simulated_calibration(plan):
     scene, p = plan
     pred = _design.predict(p)

@@ -29,11 +29,13 @@ import dataclasses
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from jaxtyping import Array, Bool
 
 from ..calibration import lm as _lm
 from ..calibration.calibrate import _laser_offset
@@ -42,7 +44,7 @@ from ..geometry.lasers import line_plane_intersection
 from ..geometry.mirror import project_through_mirror
 from ..geometry.pose import Pose, so3_exp
 from ..geometry.rig import Rig, laser_columns, project_rim
-from ..observations.problem import Packed
+from ..observations.problem import Packed, bucket, pad_rows
 from ..observations.simulate import PAPER_HALF_WIDTH, PAPER_ROTATION_DEG, PAPER_TRANSLATION_MM, Scene, box_walls
 
 N_RIM = 90  # rim edge pixels per view, as the simulator writes
@@ -104,25 +106,57 @@ class Plan:
 # ----------------------------------------------------------------------------- the bound as a function of the poses
 
 
-def _problem(plan: Plan):
-    """The fixed structure of the plan's joint problem: every dot, every (view, laser, wall) spot."""
+VIEW_LADDER = (4, 2)  # the plan's views padded to 4, 8, 16, ... (see :func:`_problem`)
+
+
+class Present(NamedTuple):
+    """Which rows of a padded plan are real: per view, per rim row, per corner row."""
+
+    views: Bool[Array, " V"]
+    rim: Bool[Array, " R"]
+    chess: Bool[Array, " C"]
+
+
+_project_rim = jax.jit(project_rim)
+
+
+def _problem(plan: Plan, pad: bool = True):
+    """The fixed structure of the plan's joint problem: every dot, every (view, laser, wall) spot,
+    the rim's pixels and the direct views' corners, with the numbers of views and of direct
+    views padded by :data:`VIEW_LADDER` (``pad=False``: as they are).
+
+    The padded views are copies of the first and their rows, the padded rim rows and the
+    padded direct views' corners weigh nothing (:class:`Present`): every plan whose counts fall
+    in the same buckets shares one compilation of the bound and its gradient.
+    Returns ``(pk, T_bw, chess, present)``."""
     boards, T_box_walls = box_walls(plan.half_width)
     walls = [boards[f"wall{j}"] for j in range(4)]
     n_v, n_l, n_d = plan.views.shape[0], plan.rig.lasers.n, walls[0].shape[0]
-    dot_pose = np.repeat(np.arange(4 * n_v), n_d)
-    dot_points = np.tile(np.concatenate(walls), (n_v, 1))
-    vv, ll, jj = np.meshgrid(np.arange(n_v), np.arange(n_l), np.arange(4), indexing="ij")
+    cap = bucket(n_v, *VIEW_LADDER) if pad else n_v
+    dot_pose = np.repeat(np.arange(4 * cap), n_d)
+    dot_points = np.tile(np.concatenate(walls), (cap, 1))
+    vv, ll, jj = np.meshgrid(np.arange(cap), np.arange(n_l), np.arange(4), indexing="ij")
     spot_pose, spot_laser = (4 * vv + jj).ravel(), ll.ravel()
-    angles = np.linspace(0.0, 2 * np.pi, N_RIM * n_v, endpoint=False)
-    rim, ok = project_rim(plan.rig, jnp.asarray(angles))
-    rim = np.asarray(rim)[np.asarray(ok)]
+    n_ang = N_RIM * cap
+    angles = pad_rows(np.linspace(0.0, 2 * np.pi, N_RIM * n_v, endpoint=False), n_ang)
+    rim, ok = _project_rim(plan.rig, jnp.asarray(angles))
+    rim, rim_ok = np.asarray(rim), np.asarray(ok) & (np.arange(n_ang) < N_RIM * n_v)
+    if pad:  # the rows kept in place, those off the rim weighing nothing (a valid pixel in them)
+        rim = np.where(rim_ok[:, None], rim, rim[np.argmax(rim_ok)])
+    else:
+        rim, rim_ok = rim[rim_ok], rim_ok[rim_ok]
     if plan.chess_poses:
         board = np.asarray(plan.chess_board)
-        chess_pose = np.repeat(np.arange(len(plan.chess_poses)), board.shape[0])
-        chess_points = np.tile(board, (len(plan.chess_poses), 1))
-        chess = Pose(jnp.stack([p.R for p in plan.chess_poses]), jnp.stack([p.t for p in plan.chess_poses]))
+        n_c = len(plan.chess_poses)
+        cap_c = bucket(n_c, *VIEW_LADDER) if pad else n_c
+        chess_pose = np.repeat(np.arange(cap_c), board.shape[0])
+        chess_points = np.tile(board, (cap_c, 1))
+        chess_present = chess_pose < n_c
+        R = pad_rows(np.stack([np.asarray(p.R) for p in plan.chess_poses]), cap_c)
+        t = pad_rows(np.stack([np.asarray(p.t) for p in plan.chess_poses]), cap_c)
+        chess = Pose(jnp.asarray(R), jnp.asarray(t))
     else:
-        chess_pose, chess_points = np.zeros(0, int), np.zeros((0, 3))
+        chess_pose, chess_points, chess_present = np.zeros(0, int), np.zeros((0, 3)), np.zeros(0, bool)
         chess = Pose(jnp.zeros((0, 3, 3)), jnp.zeros((0, 3)))
     pk = Packed(
         jnp.asarray(dot_pose),
@@ -140,7 +174,13 @@ def _problem(plan: Plan):
         (),
     )
     T_bw = Pose(jnp.stack([p.R for p in T_box_walls]), jnp.stack([p.t for p in T_box_walls]))
-    return pk, T_bw, chess
+    present = Present(jnp.asarray(np.arange(cap) < n_v), jnp.asarray(rim_ok), jnp.asarray(chess_present))
+    return pk, T_bw, chess, present
+
+
+def pad_views(views, cap: int) -> np.ndarray:
+    """(V, 6) views (or design variables) padded to ``cap`` rows with copies of the first."""
+    return pad_rows(np.asarray(views, dtype=float), cap)
 
 
 def _poses(views, T_bw: Pose) -> Pose:
@@ -154,14 +194,17 @@ def _poses(views, T_bw: Pose) -> Pose:
     return Pose(R, t)
 
 
-def _weights(rig: Rig, poses: Pose, pk: Packed, n_v: int):
-    """Per observation, 1 where it would be observed: dots visible, spots on their first wall and visible."""
+def _weights(rig: Rig, poses: Pose, pk: Packed, present: Present):
+    """Per observation, 1 where it would be observed: dots visible, spots on their first wall and
+    visible (none in a padded view)."""
     cam, mir, las = rig.camera, rig.mirror, rig.lasers
+    n_v = poses.t.shape[0] // 4
 
     def dot_ok(R, t, xb):
         return project_through_mirror(cam, mir, Pose(R, t).apply(xb)).valid
 
     w_dot = jax.vmap(dot_ok)(poses.R[pk.dot_pose], poses.t[pk.dot_pose], pk.dot_points)
+    w_dot = w_dot & present.views[pk.dot_pose // 4]
 
     def spot(R, t, li):
         p, d = las.points[li], las.directions[li]
@@ -184,18 +227,17 @@ def _weights(rig: Rig, poses: Pose, pk: Packed, n_v: int):
     return w_dot, w_spot, x_ref
 
 
-def calibration_covariance(views, rig, T_bw, chess, pk, sigma, n_v):
+def calibration_covariance(views, rig, T_bw, chess, pk, sigma, present: Present):
     """The plan's bound on the rig's tangent (camera, mirror, lasers: ``rig.tangent_dim`` square,
-    px^2 scaled by ``sigma^2``), which dots and spots are observed, and each laser's working point."""
+    px^2 scaled by ``sigma^2``), which dots and spots are observed, and each laser's working point.
+    ``views`` padded as ``pk`` (:func:`_problem`)."""
     poses = _poses(views, T_bw)
     # which points are seen is held while differentiating; the working points move with the poses
-    w_dot, w_spot, x_ref = _weights(rig, poses, pk, n_v)
+    w_dot, w_spot, x_ref = _weights(rig, poses, pk, present)
     w_dot, w_spot = jax.lax.stop_gradient(w_dot), jax.lax.stop_gradient(w_spot)
     params = Params(rig, poses, chess)
     rows = _lm._rows(params, pk)  # differentiated in reverse mode
-    n_d, n_s = pk.dot_pose.shape[0], pk.spot_pose.shape[0]
-    n_obs = _lm.n_observations(pk)
-    w_obs = jnp.concatenate([w_dot, w_spot, jnp.ones(n_obs - n_d - n_s, dtype=bool)]).astype(float)
+    w_obs = jnp.concatenate([w_dot, w_spot, present.rim, present.chess]).astype(float)
     g, nb = params.n_global, params.n_blocks
     masks = _lm.make_masks(params)
     ne = _lm.normal_equations(rows, w_obs[rows.obs], g, nb, masks.glob, masks.blocks)
@@ -203,9 +245,9 @@ def calibration_covariance(views, rig, T_bw, chess, pk, sigma, n_v):
     return cov, w_dot, w_spot, x_ref
 
 
-def _predict(views, rig, T_bw, chess, pk, sigma, n_v):
+def _predict(views, rig, T_bw, chess, pk, sigma, present):
     """Per laser: predicted position variance (mm^2) at the working point and direction variance (rad^2)."""
-    cov, w_dot, w_spot, x_ref = calibration_covariance(views, rig, T_bw, chess, pk, sigma, n_v)
+    cov, w_dot, w_spot, x_ref = calibration_covariance(views, rig, T_bw, chess, pk, sigma, present)
 
     def laser(i):
         s = laser_columns(i).start  # a traced index: the block by a dynamic slice
@@ -259,56 +301,63 @@ class Prediction:
         return out
 
 
-_predict_jit = jax.jit(_predict, static_argnames=("n_v",))
+_predict_jit = jax.jit(_predict)
 
 
-def _objective(u, scale, rig, T_bw, chess, pk, sigma, n_v, ref_pos, ref_ang, pw):
-    pos, ang, _, _ = _predict(scale * jnp.tanh(u), rig, T_bw, chess, pk, sigma, n_v)
+def _objective(u, scale, rig, T_bw, chess, pk, sigma, present, ref_pos, ref_ang, pw):
+    pos, ang, _, _ = _predict(scale * jnp.tanh(u), rig, T_bw, chess, pk, sigma, present)
     return jnp.mean(ang / ref_ang) + pw * jnp.mean(pos / ref_pos)
 
 
-_objective_jit = jax.jit(_objective, static_argnames=("n_v",))
+_objective_jit = jax.jit(_objective)
 
 
 @jax.jit
-def _visible(u, scale, rig, T_bw, pk):
+def _visible(u, scale, rig, T_bw, pk, present):
     """Whether each dot, then each spot, would be observed at the poses ``scale * tanh(u)``."""
-    w_dot, w_spot, _ = _weights(rig, _poses(scale * jnp.tanh(u), T_bw), pk, u.shape[0])
+    w_dot, w_spot, _ = _weights(rig, _poses(scale * jnp.tanh(u), T_bw), pk, present)
     return jnp.concatenate([w_dot, w_spot])
 
 
-_value_and_grad_jit = jax.jit(jax.value_and_grad(_objective), static_argnames=("n_v",))
+_value_and_grad_jit = jax.jit(jax.value_and_grad(_objective))
 
 
 class _Compiled:
-    """A plan's fixed problem; the bound and its gradient are compiled once per problem size."""
+    """A plan's fixed problem, padded (:func:`_problem`): the bound and its gradient are compiled
+    once per bucket of view counts.  Its design variables ``u`` have the padded views' rows
+    (copies of the first view's, whose gradient is zero: they move nowhere)."""
 
-    def __init__(self, plan: Plan):
-        self.pk, self.T_bw, self.chess = _problem(plan)
+    def __init__(self, plan: Plan, pad: bool = True):
+        self.pk, self.T_bw, self.chess, self.present = _problem(plan, pad)
         self.scale = jnp.asarray(np.maximum(plan.scale, 1e-12))
         self.n_v = plan.views.shape[0]
+        self.cap = int(self.present.views.shape[0])
+        self.real = np.arange(self.cap) < self.n_v
         # the view of each dot, then of each spot (poses are indexed 4 v + wall)
         self.obs_view = np.concatenate([np.asarray(self.pk.dot_pose), np.asarray(self.pk.spot_pose)]) // 4
-        self.args = (plan.rig, self.T_bw, self.chess, self.pk, jnp.asarray(float(plan.noise)))
+        self.args = (plan.rig, self.T_bw, self.chess, self.pk, jnp.asarray(float(plan.noise)), self.present)
 
     def predict(self, views):
-        return _predict_jit(views, *self.args, n_v=self.n_v)
+        """The prediction at (V, 6) views, padded here."""
+        return _predict_jit(jnp.asarray(pad_views(views, self.cap)), *self.args)
 
     def objective(self, u, ref_pos, ref_ang, pw):
-        return _objective_jit(u, self.scale, *self.args, self.n_v, ref_pos, ref_ang, pw)
+        return _objective_jit(u, self.scale, *self.args, ref_pos, ref_ang, pw)
 
     def visible(self, u) -> np.ndarray:
-        return np.asarray(_visible(u, self.scale, self.args[0], self.T_bw, self.pk))
+        return np.asarray(_visible(u, self.scale, self.args[0], self.T_bw, self.pk, self.present))
 
     def value_and_grad(self, u, ref_pos, ref_ang, pw):
-        return _value_and_grad_jit(u, self.scale, *self.args, self.n_v, ref_pos, ref_ang, pw)
+        return _value_and_grad_jit(u, self.scale, *self.args, ref_pos, ref_ang, pw)
 
     def u_of(self, views: np.ndarray) -> jnp.ndarray:
-        x = np.clip(views / np.asarray(self.scale), -1.0 + 1e-9, 1.0 - 1e-9)
-        return jnp.asarray(np.arctanh(x))
+        """The padded design variables of (V, 6) views."""
+        x = np.clip(np.asarray(views) / np.asarray(self.scale), -1.0 + 1e-9, 1.0 - 1e-9)
+        return jnp.asarray(pad_views(np.arctanh(x), self.cap))
 
     def views_of(self, u) -> np.ndarray:
-        return np.asarray(self.scale * jnp.tanh(u))
+        """The (V, 6) real views of padded design variables."""
+        return np.asarray(self.scale * jnp.tanh(u))[: self.n_v]
 
 
 def predict(plan: Plan) -> Prediction:
@@ -318,7 +367,7 @@ def predict(plan: Plan) -> Prediction:
 
 
 def _prediction(c: _Compiled, views) -> Prediction:
-    pos, ang, nd, ns = c.predict(jnp.asarray(views, dtype=float))
+    pos, ang, nd, ns = c.predict(views)
     return Prediction(np.sqrt(np.asarray(pos)), np.sqrt(np.asarray(ang)), int(nd), int(ns))
 
 
@@ -342,7 +391,7 @@ def _line_search(c: "_Compiled", u, step, lr, f0, ref_pos, ref_ang, pw):
     falls: such views are held in place and the step is tried again; otherwise the length
     is halved (at most 8 tries).
     """
-    held = np.zeros(c.n_v, dtype=bool)
+    held = np.zeros(c.cap, dtype=bool)
     seen = None
     for _ in range(8):
         u_new = u - lr * step * jnp.asarray(~held, dtype=float)[:, None]
@@ -351,9 +400,9 @@ def _line_search(c: "_Compiled", u, step, lr, f0, ref_pos, ref_ang, pw):
             return u_new, f_new, lr
         if seen is None:
             seen = c.visible(u)
-        changed = np.zeros(c.n_v, dtype=bool)
+        changed = np.zeros(c.cap, dtype=bool)
         np.logical_or.at(changed, c.obs_view, c.visible(u_new) != seen)
-        if changed.any() and not (held | changed).all():
+        if changed.any() and not (held | changed | ~c.real).all():
             held |= changed
         else:
             lr *= 0.5
@@ -377,7 +426,7 @@ def optimise(
     t0 = time.perf_counter()
     c = _Compiled(plan)
     u = c.u_of(plan.views)
-    pos0, ang0, _, _ = c.predict(c.scale * jnp.tanh(u))
+    pos0, ang0, _, _ = c.predict(c.views_of(u))
     ref_pos, ref_ang = jnp.maximum(pos0, 1e-30), jnp.maximum(ang0, 1e-30)
     pw = jnp.asarray(float(position_weight))
     f, grad = c.value_and_grad(u, ref_pos, ref_ang, pw)

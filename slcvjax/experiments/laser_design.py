@@ -46,7 +46,7 @@ from ..geometry.rig import Rig
 from ..images.pipe import beam_pipe_point
 from ..measurement.measure import _circle_sensitivity, triangulate_spot
 from ..support.safe import safe_normalize
-from .design import MIN_SPOTS, Plan, _problem, calibration_covariance
+from .design import MIN_SPOTS, Plan, _problem, calibration_covariance, pad_views
 
 BODY_RADIUS_MM = 12.0  # the renderer's default sensor body (RenderOptions)
 BODY_GAP_MM = 8.0
@@ -188,11 +188,11 @@ def _emitters_seen(rig: Rig, body):
     return jax.vmap(seen)(rig.lasers.points)
 
 
-def _evaluate(u, start, ranges, rig0, views, T_bw, chess, pk, sigma, n_v, radii, body):
+def _evaluate(u, start, ranges, rig0, views, T_bw, chess, pk, sigma, present, radii, body):
     """At the design variables ``u``: per diameter the predicted variance and the spots' margins,
     the wall spots per laser, whether each emitter is seen."""
     rig = rig0.with_lasers(_lasers_at(u, start, ranges))
-    cov, _, w_spot, _ = calibration_covariance(views, rig, T_bw, chess, pk, sigma, n_v)
+    cov, _, w_spot, _ = calibration_covariance(views, rig, T_bw, chess, pk, sigma, present)
     var_d, seen, rim, body_m, img, angle = jax.vmap(lambda r: _pipe_prediction(rig, cov, sigma, r, body))(radii)
     wall = jax.ops.segment_sum(w_spot.astype(int), pk.spot_laser, num_segments=rig.lasers.n)
     # a laser with too few wall spots is not calibrated: its bound (and every diameter) is undetermined
@@ -200,13 +200,13 @@ def _evaluate(u, start, ranges, rig0, views, T_bw, chess, pk, sigma, n_v, radii,
     return var_d, seen, rim, body_m, img, angle, wall, _emitters_seen(rig, body)
 
 
-def _relative_variance(u, start, ranges, rig0, views, T_bw, chess, pk, sigma, n_v, radii, body):
-    var_d = _evaluate(u, start, ranges, rig0, views, T_bw, chess, pk, sigma, n_v, radii, body)[0]
+def _relative_variance(u, start, ranges, rig0, views, T_bw, chess, pk, sigma, present, radii, body):
+    var_d = _evaluate(u, start, ranges, rig0, views, T_bw, chess, pk, sigma, present, radii, body)[0]
     return jnp.mean(var_d / (2.0 * radii) ** 2)
 
 
-_evaluate_jit = jax.jit(_evaluate, static_argnames=("n_v",))
-_value_and_grad_jit = jax.jit(jax.value_and_grad(_relative_variance), static_argnames=("n_v",))
+_evaluate_jit = jax.jit(_evaluate)
+_value_and_grad_jit = jax.jit(jax.value_and_grad(_relative_variance))
 
 
 # ----------------------------------------------------------------------------- the design
@@ -259,21 +259,20 @@ class _Compiled:
     def __init__(self, mp: MeasurePlan):
         plan = mp.plan
         self.mp = mp
-        self.pk, self.T_bw, self.chess = _problem(plan)
+        self.pk, self.T_bw, self.chess, present = _problem(plan)
         self.start = {k: jnp.asarray(v) for k, v in mounting_of(plan.rig.lasers).items()}
         self.ranges = jnp.asarray([np.radians(mp.elevation_range_deg), mp.ring_radius_range_mm, mp.ring_z_range_mm])
         self.n = plan.rig.lasers.n
-        self.n_v = plan.views.shape[0]
         self.radii = jnp.asarray(mp.diameters / 2.0)
         self.body = jnp.asarray([mp.body_radius_mm, mp.body_gap_mm])
         self.common = (
-            self.start, self.ranges, plan.rig, jnp.asarray(plan.views), self.T_bw, self.chess, self.pk,
-            jnp.asarray(float(plan.noise)),
+            self.start, self.ranges, plan.rig, jnp.asarray(pad_views(plan.views, present.views.shape[0])), self.T_bw,
+            self.chess, self.pk, jnp.asarray(float(plan.noise)), present,
         )  # fmt: skip
 
     def evaluate(self, u) -> MeasurePrediction:
         var_d, seen, rim, body_m, img, angle, wall, emitters = (
-            np.asarray(a) for a in _evaluate_jit(u, *self.common, n_v=self.n_v, radii=self.radii, body=self.body)
+            np.asarray(a) for a in _evaluate_jit(u, *self.common, radii=self.radii, body=self.body)
         )
         ang = np.where(seen, angle, np.inf)
         return MeasurePrediction(
@@ -283,7 +282,7 @@ class _Compiled:
         )  # fmt: skip
 
     def value_and_grad(self, u):
-        return _value_and_grad_jit(u, *self.common, n_v=self.n_v, radii=self.radii, body=self.body)
+        return _value_and_grad_jit(u, *self.common, radii=self.radii, body=self.body)
 
     def rig_at(self, u) -> Rig:
         r = self.mp.plan.rig
