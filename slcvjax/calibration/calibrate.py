@@ -187,10 +187,20 @@ def _linearisation(
     return layout, res.linearisation
 
 
+_TABLES: list = []  # (params, packed, result) of the last calls of _table, newest first
+
+
 def _table(params: Params, pk: Packed):
-    """The padded problem's layout and its :class:`slcvjax.calibration.lm.ObservationTable` at ``params``."""
+    """The padded problem's layout and its :class:`slcvjax.calibration.lm.ObservationTable` at
+    ``params`` (the last few kept: a fit looks at one solution's table several times)."""
+    for p, k, out in _TABLES:
+        if p is params and k is pk:
+            return out
     layout = Layout.of(pk, n_lasers=params.rig.lasers.n)
-    return layout, _table_jit(pad_params(layout, params), layout.pad_packed(pk))
+    out = layout, _table_jit(pad_params(layout, params), layout.pad_packed(pk))
+    _TABLES.insert(0, (params, pk, out))
+    del _TABLES[4:]
+    return out
 
 
 def _per_observation(params: Params, pk: Packed) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

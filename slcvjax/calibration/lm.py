@@ -53,7 +53,7 @@ from ..geometry.lasers import Lasers, line_plane_intersection
 from ..geometry.mirror import Mirror, project_through_mirror
 from ..geometry.pose import Pose
 from ..geometry.rig import CAMERA_DOF, LASER_DOF, MIRROR_DOF, Rig
-from ..observations.problem import ROBUST_KINDS, Kind, Layout, Packed, kind_weights
+from ..observations.problem import ROBUST_KINDS, Kind, Layout, Packed, kind_weights, map_rows
 from ..support.safe import safe_div, safe_norm
 
 N_CAM, N_MIR, N_LAS = CAMERA_DOF, MIRROR_DOF, LASER_DOF
@@ -210,12 +210,17 @@ def _rim(d, cam, mir, uv, norm):
     return safe_div(val, norm)[None], ok & (norm > 0.0)
 
 
-def rim_norms(rig: Rig, pk: Packed) -> Float[Array, " R"]:
+def rim_norms(rig: Rig, pk: Packed, real_only: bool = True) -> Float[Array, " R"]:
     """Each rim pixel's ``|dF/duv|`` (:func:`rim_scale`) on ``rig``: the rim rows' normalisation
-    (none for a camera-only rig, which has no rim)."""
+    (none for a camera-only rig, which has no rim).  ``real_only``: the real rows only
+    (``pk.counts``; the padded rows' norm is 0, which leaves them invalid), in a loop that
+    cannot be differentiated in reverse mode; ``False``: every row, differentiable."""
     if rig.mirror is None:
         return jnp.zeros(pk.rim_pixels.shape[0])
-    return jax.vmap(lambda uv: rim_scale(rig.camera, rig.mirror, uv))(pk.rim_pixels)
+    norms = jax.vmap(lambda uv: rim_scale(rig.camera, rig.mirror, uv))
+    if not real_only:
+        return norms(pk.rim_pixels)
+    return map_rows(norms)(pk.rim_pixels, pk.counts[Kind.RIM])
 
 
 def _chess(d, cam, R, t, xb, px):
@@ -379,7 +384,7 @@ def _groups(params: Params, pk: Packed, with_jac: bool, rim_norm: Array | None) 
             jnp.full(k, 2),
         )
 
-    norm = jax.lax.stop_gradient(rim_norms(rig, pk) if rim_norm is None else rim_norm)
+    norm = jax.lax.stop_gradient(rim_norms(rig, pk, real_only=False) if rim_norm is None else rim_norm)
     rim_group = Group(rim, (pk.rim_pixels, norm), [(0, pk.counts[Kind.RIM])], CHUNKS[1])
 
     def chess(xb, px, pose, spot_chunk=None):

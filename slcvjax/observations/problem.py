@@ -312,6 +312,9 @@ def map_padded(fn, *args, rows):
     return jax.tree_util.tree_map(lambda x: np.asarray(x)[:n], out)
 
 
+_PADDED: list = []  # (layout, packed, padded) of the last calls of Layout.pad_packed, newest first
+
+
 class Layout(NamedTuple):
     """The real and padded sizes of a problem: dots, spots, rim pixels, corners, board poses,
     direct-view poses, and (``lasers``: real, padded) the rig's lasers (None: not padded)."""
@@ -393,7 +396,17 @@ class Layout(NamedTuple):
 
     def pad_packed(self, pk: "Packed") -> "Packed":
         """``pk``'s arrays padded to the layout's sizes, without the static keys (which would
-        make every dataset its own compilation)."""
+        make every dataset its own compilation).  The last few results are kept: a fit pads
+        the same observations for each of its tables and passes."""
+        for layout, src, out in _PADDED:
+            if src is pk and layout == self:
+                return out
+        out = self._pad_packed(pk)
+        _PADDED.insert(0, (self, pk, out))
+        del _PADDED[8:]
+        return out
+
+    def _pad_packed(self, pk: "Packed") -> "Packed":
         d, s, r, c = self.cap[:4]
         pairs = {}
         if pk.pair_block is not None:

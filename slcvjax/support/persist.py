@@ -58,12 +58,14 @@ def committed(tree):
     lowered program is not): a compiled entry point that receives both, say a calibration's
     host arrays and then a device result, passes its arguments through this first."""
     device = jax.devices()[0]
-    return jax.tree_util.tree_map(
-        lambda x: jax.device_put(
-            x if isinstance(x, jax.Array) and not x.weak_type else jnp.asarray(x, dtype=_dtype(x)), device
-        ),
-        tree,
-    )
+    one_device = {device}
+
+    def one(x):
+        if isinstance(x, jax.Array) and not x.weak_type:
+            return x if x.committed and x.sharding.device_set == one_device else jax.device_put(x, device)
+        return jax.device_put(jnp.asarray(x, dtype=_dtype(x)), device)
+
+    return jax.tree_util.tree_map(one, tree)
 
 
 def _folder() -> Path | None:
@@ -92,7 +94,7 @@ class PersistentJit:
         # Python scalars, weakly typed or uncommitted arrays would make one exported signature
         # several compilations
         leaves, tree = jax.tree_util.tree_flatten(committed(args))
-        sig = (str(tree), tuple((x.shape, str(x.dtype)) for x in leaves))
+        sig = (tree, tuple((x.shape, x.dtype) for x in leaves))
         entry = self._calls.get(sig)
         if entry is None:
             entry = self._calls[sig] = self._entry(leaves, tree, sig)
@@ -106,7 +108,9 @@ class PersistentJit:
         folder = _folder()
         if folder is None:
             return False
-        key = hashlib.sha256(f"{self.name} {sig} {_source_hash()}".encode()).hexdigest()[:40]
+        tree, shapes = sig
+        text = (str(tree), tuple((shape, str(dtype)) for shape, dtype in shapes))
+        key = hashlib.sha256(f"{self.name} {text} {_source_hash()}".encode()).hexdigest()[:40]
         path = folder / f"{self.name}-{key}.jaxexport"
         if path.exists():
             try:
