@@ -161,3 +161,23 @@ def test_a_new_problem_size_compiles_nothing(compilations):
         res = calibrate(other)
     assert res.passes[-1].converged
     assert compiled == []
+
+
+def test_recent_results_are_found_by_identity_and_value_and_the_oldest_leave():
+    from slcvjax.support.recent import Recent
+
+    calls = []
+    r = Recent(2)
+
+    def f(tag):
+        calls.append(tag)
+        return tag
+
+    a, b, c = np.zeros(3), np.zeros(3), np.zeros(3)  # equal values, distinct objects
+    assert r.get((a,), 1, lambda: f("a1")) == "a1"
+    assert r.get((a,), 1, lambda: f("again")) == "a1"  # the same object and value: kept
+    assert r.get((b,), 1, lambda: f("b1")) == "b1"  # an equal but other object: computed
+    assert r.get((a,), 2, lambda: f("a2")) == "a2"  # another value: computed; a1 leaves
+    assert r.get((a,), 1, lambda: f("a1 again")) == "a1 again"
+    assert r.get((c, a), None, lambda: f("ca")) == "ca"
+    assert calls == ["a1", "b1", "a2", "a1 again", "ca"]

@@ -52,6 +52,7 @@ from ..geometry.rig import (
 from ..observations.formats import Calibration, Observations, shape_missing
 from ..observations.problem import KIND_NAMES, Kind, Layout, Packed, kind_weights, pack, stack_poses, unstack_poses
 from ..support.persist import PersistentJit
+from ..support.recent import Recent
 from ..support.safe import std_of_variance
 from .central import central_start
 from .lm import (
@@ -187,20 +188,18 @@ def _linearisation(
     return layout, res.linearisation
 
 
-_TABLES: list = []  # (params, packed, result) of the last calls of _table, newest first
+_TABLES = Recent(4)  # the last calls of _table
 
 
 def _table(params: Params, pk: Packed):
     """The padded problem's layout and its :class:`slcvjax.calibration.lm.ObservationTable` at
     ``params`` (the last few kept: a fit looks at one solution's table several times)."""
-    for p, k, out in _TABLES:
-        if p is params and k is pk:
-            return out
-    layout = Layout.of(pk, n_lasers=params.rig.lasers.n)
-    out = layout, _table_jit(pad_params(layout, params), layout.pad_packed(pk))
-    _TABLES.insert(0, (params, pk, out))
-    del _TABLES[4:]
-    return out
+
+    def compute():
+        layout = Layout.of(pk, n_lasers=params.rig.lasers.n)
+        return layout, _table_jit(pad_params(layout, params), layout.pad_packed(pk))
+
+    return _TABLES.get((params, pk), None, compute)
 
 
 def _per_observation(params: Params, pk: Packed) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

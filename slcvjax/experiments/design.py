@@ -332,7 +332,7 @@ class _Compiled:
         self.scale = jnp.asarray(np.maximum(plan.scale, 1e-12))
         self.n_v = plan.views.shape[0]
         self.cap = int(self.present.views.shape[0])
-        self.real = np.arange(self.cap) < self.n_v
+        self.real = np.asarray(self.present.views)
         # the view of each dot, then of each spot (poses are indexed 4 v + wall)
         self.obs_view = np.concatenate([np.asarray(self.pk.dot_pose), np.asarray(self.pk.spot_pose)]) // 4
         self.args = (plan.rig, self.T_bw, self.chess, self.pk, jnp.asarray(float(plan.noise)), self.present)

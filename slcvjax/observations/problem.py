@@ -30,6 +30,7 @@ from ..geometry.lasers import Lasers, line_plane_intersection
 from ..geometry.mirror import project_through_mirror
 from ..geometry.pose import Pose
 from ..geometry.rig import CAMERA_DOF, LASER_DOF, MIRROR_DOF, Rig
+from ..support.recent import Recent
 from .formats import Observations
 
 
@@ -312,7 +313,7 @@ def map_padded(fn, *args, rows):
     return jax.tree_util.tree_map(lambda x: np.asarray(x)[:n], out)
 
 
-_PADDED: list = []  # (layout, packed, padded) of the last calls of Layout.pad_packed, newest first
+_PADDED = Recent(8)  # the last calls of Layout.pad_packed
 
 
 class Layout(NamedTuple):
@@ -398,13 +399,7 @@ class Layout(NamedTuple):
         """``pk``'s arrays padded to the layout's sizes, without the static keys (which would
         make every dataset its own compilation).  The last few results are kept: a fit pads
         the same observations for each of its tables and passes."""
-        for layout, src, out in _PADDED:
-            if src is pk and layout == self:
-                return out
-        out = self._pad_packed(pk)
-        _PADDED.insert(0, (self, pk, out))
-        del _PADDED[8:]
-        return out
+        return _PADDED.get((pk,), self, lambda: self._pad_packed(pk))
 
     def _pad_packed(self, pk: "Packed") -> "Packed":
         d, s, r, c = self.cap[:4]

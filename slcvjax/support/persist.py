@@ -108,8 +108,7 @@ class PersistentJit:
         folder = _folder()
         if folder is None:
             return False
-        tree, shapes = sig
-        text = (str(tree), tuple((shape, str(dtype)) for shape, dtype in shapes))
+        text = (str(tree), tuple((shape, str(dtype)) for shape, dtype in sig[1]))
         key = hashlib.sha256(f"{self.name} {text} {_source_hash()}".encode()).hexdigest()[:40]
         path = folder / f"{self.name}-{key}.jaxexport"
         if path.exists():
