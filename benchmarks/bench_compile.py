@@ -126,7 +126,7 @@ def padding_cost(path: Path) -> dict:
         return _lm.linearise(p, pk, m, 0, 1.0, kw, norm)
 
     def cost(p, pk, norm):
-        return _lm._cost(p, pk, 0, 1.0, kw, norm)
+        return _lm.cost_at(p, pk, 0, 1.0, kw, norm)
 
     lin, cost, norms = jax.jit(lin), jax.jit(cost), jax.jit(_lm.rim_norms)
 

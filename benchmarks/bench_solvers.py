@@ -143,7 +143,7 @@ def stationary_point(repeats: int, n_lasers: int, n_views: int) -> dict:
         return p0.retract(d[:g] * mg, (d[g:] * mb).reshape(nb, 6))
 
     def cost(d):
-        return _lm._cost(at(d), pk, loss, res.scale, kw, norm, real_only=False)
+        return _lm.cost_at(at(d), pk, loss, res.scale, kw, norm, real_only=False)
 
     def gradient(d, _):  # held columns: the identity, so that the Jacobian is regular
         return mask * jax.grad(cost)(d) + (1.0 - mask) * d
@@ -162,7 +162,7 @@ def stationary_point(repeats: int, n_lasers: int, n_views: int) -> dict:
     theirs_t, (d, steps2, ok) = timed(theirs_fn, repeats)
     q = jax.tree_util.tree_map(jnp.asarray, q)
     diff = max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(jax.tree.leaves(at(d)), jax.tree.leaves(q), strict=True))
-    c_ours = float(_lm._cost(q, pk, loss, res.scale, kw, norm, real_only=False))
+    c_ours = float(_lm.cost_at(q, pk, loss, res.scale, kw, norm, real_only=False))
     return {
         "lasers": n_lasers,
         "views": n_views,

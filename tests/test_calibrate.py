@@ -258,11 +258,11 @@ def test_lm_gradient_is_the_gradient_of_its_cost(scene):
 
     @jax.jit
     def held_cost(e, dg, dp, kw):
-        return _lm._cost(params.retract(e * dg, e * dp), pk, "huber", scale, kw, norm)
+        return _lm.cost_at(params.retract(e * dg, e * dp), pk, "huber", scale, kw, norm)
 
     @jax.jit
     def varying_cost(e, dg, dp, kw):
-        return _lm._cost(params.retract(e * dg, e * dp), pk, "huber", scale, kw, None)
+        return _lm.cost_at(params.retract(e * dg, e * dp), pk, "huber", scale, kw, None)
 
     @jax.jit  # one program, not a few hundred operations compiled one by one
     def lm_side(kw, dg, dp):

@@ -874,6 +874,12 @@ class LMResult(NamedTuple):
     linearisation: Linearisation  # at ``params`` (with the rim normalisation held at the start)
 
 
+def cost_at(params, pk, loss, scale, kind_weight, rim_norm=None, real_only=True) -> Float[Array, ""]:
+    """The robust cost alone at ``params`` (no Jacobian): the cost :func:`solve` judges its
+    steps by, which its linearisation returns with the normal equations."""
+    return accumulate(params, pk, None, loss, scale, kind_weight, rim_norm, False, real_only).cost
+
+
 def _table_arrays(params: Params, pk: Packed) -> tuple[Array, Array, Array]:
     """Per observation (dots, spots, rim pixels, corners): its kind, whether it is real, its pose block."""
     n_d, n_s, n_r, n_c = pk.dot_pose.shape[0], pk.spot_pose.shape[0], pk.rim_pixels.shape[0], pk.chess_pose.shape[0]
