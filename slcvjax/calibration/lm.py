@@ -54,6 +54,7 @@ from ..geometry.mirror import Mirror, project_through_mirror
 from ..geometry.pose import Pose
 from ..geometry.rig import CAMERA_DOF, LASER_DOF, MIRROR_DOF, Rig
 from ..observations.problem import ROBUST_KINDS, Kind, Layout, Packed, kind_weights, map_rows
+from ..support.persist import committed
 from ..support.safe import safe_div, safe_norm
 
 N_CAM, N_MIR, N_LAS = CAMERA_DOF, MIRROR_DOF, LASER_DOF
@@ -849,9 +850,8 @@ def unpad_params(layout: Layout, params: Params) -> Params:
 
 def pad_masks(layout: Layout, masks: Masks) -> Masks:
     """``masks`` over padded lasers and pose blocks: a padded laser or block is frozen (and has no observation)."""
-    return Masks(
-        jnp.asarray(layout.pad_glob(masks.glob), dtype=float), jnp.asarray(layout.pad_blocks(masks.blocks), dtype=float)
-    )
+    glob, blocks = layout.pad_glob(masks.glob), layout.pad_blocks(masks.blocks)
+    return committed(Masks(np.asarray(glob, dtype=float), np.asarray(blocks, dtype=float)))
 
 
 class Linearisation(NamedTuple):

@@ -30,6 +30,7 @@ from ..geometry.lasers import Lasers, line_plane_intersection
 from ..geometry.mirror import project_through_mirror
 from ..geometry.pose import Pose
 from ..geometry.rig import CAMERA_DOF, LASER_DOF, MIRROR_DOF, Rig
+from ..support.persist import committed
 from ..support.recent import Recent
 from .formats import Observations
 
@@ -397,8 +398,9 @@ class Layout(NamedTuple):
 
     def pad_packed(self, pk: "Packed") -> "Packed":
         """``pk``'s arrays padded to the layout's sizes, without the static keys (which would
-        make every dataset its own compilation).  The last few results are kept: a fit pads
-        the same observations for each of its tables and passes."""
+        make every dataset its own compilation), committed to the device.  The last few
+        results are kept: a fit pads the same observations for each of its tables and passes,
+        which then take them as they are."""
         return _PADDED.get((pk,), self, lambda: self._pad_packed(pk))
 
     def _pad_packed(self, pk: "Packed") -> "Packed":
@@ -411,7 +413,7 @@ class Layout(NamedTuple):
                 "pair_block": jnp.asarray(pad_rows(pk.pair_block, size)),
                 "pair_box": jnp.asarray(pad_rows(pk.pair_box, size)),
             }
-        return Packed(
+        padded = Packed(
             jnp.asarray(pad_rows(pk.dot_pose[: self.n[0]], d)),
             jnp.asarray(pad_rows(pk.dot_points[: self.n[0]], d)),
             jnp.asarray(pad_rows(pk.dot_pixels[: self.n[0]], d)),
@@ -427,11 +429,12 @@ class Layout(NamedTuple):
             (),
             **pairs,
         )
+        return committed(padded)
 
     def pad_poses(self, poses: Pose, chess: bool = False) -> Pose:
-        """Stacked board poses (or direct-view poses) padded with copies of the first."""
+        """Stacked board poses (or direct-view poses) padded with copies of the first (on the device)."""
         size = self.cap[5 if chess else 4]
-        return Pose(jnp.asarray(pad_rows(poses.R, size, np.eye(3))), jnp.asarray(pad_rows(poses.t, size)))
+        return committed(Pose(pad_rows(poses.R, size, np.eye(3)), pad_rows(poses.t, size)))
 
     def unpad_poses(self, poses: Pose, chess: bool = False) -> Pose:
         """The real poses of padded ones (host arrays)."""
