@@ -275,6 +275,8 @@ class Group(NamedTuple):
     args: tuple
     regions: list
     chunk: int  # rows per step of the loop in :func:`accumulate`
+    width: int | None = None  # the leading global columns its rows can reach (None: all of the chunk's)
+    posed: bool = True  # its rows have a pose block
 
 
 def _groups(params: Params, pk: Packed, with_jac: bool, rim_norm: Array | None) -> list[Group]:
@@ -386,7 +388,7 @@ def _groups(params: Params, pk: Packed, with_jac: bool, rim_norm: Array | None) 
         )
 
     norm = jax.lax.stop_gradient(rim_norms(rig, pk, real_only=False) if rim_norm is None else rim_norm)
-    rim_group = Group(rim, (pk.rim_pixels, norm), [(0, pk.counts[Kind.RIM])], CHUNKS[1])
+    rim_group = Group(rim, (pk.rim_pixels, norm), [(0, pk.counts[Kind.RIM])], CHUNKS[1], N_CM, posed=False)
 
     def chess(xb, px, pose, spot_chunk=None):
         R, t = params.chess.R[pose], params.chess.t[pose]
@@ -409,6 +411,7 @@ def _groups(params: Params, pk: Packed, with_jac: bool, rim_norm: Array | None) 
         (pk.chess_points, pk.chess_pixels, pk.chess_pose),
         [(0, pk.counts[Kind.CHESS])],
         CHUNKS[2],
+        N_CAM,
     )
     if mir is None:  # the other groups have no rows: their rows' offsets are those of the full list
         return [chess_group]
@@ -593,9 +596,10 @@ def zero_normal(g: int, nb: int) -> Normal:
     )
 
 
-def add_rows(ne: Normal, rows: Rows, w, gmask, pmask) -> Normal:
+def add_rows(ne: Normal, rows: Rows, w, gmask, pmask, posed: bool = True) -> Normal:
     """``ne`` (from :func:`zero_normal`) plus the rows' ``J^T W J`` and ``J^T W r``; frozen
-    columns (``gmask``, ``pmask`` 0) get no entries."""
+    columns (``gmask``, ``pmask`` 0) get no entries.  ``posed`` False: the rows have no pose
+    block (their pose sums, scattered into the spare block, are skipped)."""
     jg = rows.jg * jnp.concatenate([gmask, jnp.zeros(1)])[rows.gidx]
     jp = rows.jp * jnp.concatenate([pmask, jnp.zeros(1)])[rows.pidx][:, None]
     wr = w * rows.r
@@ -603,6 +607,8 @@ def add_rows(ne: Normal, rows: Rows, w, gmask, pmask) -> Normal:
     # three times faster on a CPU than scattering each row's 18 x 18 outer product
     n = rows.r.shape[0]
     J = jnp.zeros((n, ne.A.shape[0])).at[jnp.arange(n)[:, None], rows.gidx].add(jg)
+    if not posed:
+        return ne._replace(A=ne.A + (J * w[:, None]).T @ J, bg=ne.bg + J.T @ wr)
     return Normal(
         ne.A + (J * w[:, None]).T @ J,
         ne.bg + J.T @ wr,
@@ -701,7 +707,9 @@ def accumulate(
             w_obs, rho = robust_observations(t, loss, scale, kind_weight)
             w = w_obs[rows.obs]
             if masks is not None and with_jac:
-                ne = add_rows(ne, rows, w, masks.glob, masks.blocks)
+                # only the columns the group's rows reach: the scatters cost by the entry
+                wide = rows._replace(jg=rows.jg[:, : grp.width], gidx=rows.gidx[:, : grp.width])
+                ne = add_rows(ne, wide, w, masks.glob, masks.blocks, grp.posed)
 
             def put(out, new):
                 return jax.lax.dynamic_update_slice_in_dim(
