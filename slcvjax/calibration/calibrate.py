@@ -1147,6 +1147,23 @@ def _rescale(d: _Lockstep) -> None:
         d.rescale(tr, PASS_B.scale_floor)
 
 
+def _readmit_set_aside(d: _Lockstep) -> None:
+    """The spots set aside by their lines (:func:`_relabel_spots`) that the joint solution so far
+    predicts near their own line (:func:`_predicted_fit`) come back before C, which then fits
+    them (rather than C again once they are judged on C's solution: :func:`_leave_out` judges
+    those still aside there)."""
+    for tr in d.trials:
+        if tr.set_aside is None:
+            continue
+        full, aside = tr.set_aside
+        back = _predicted_fit(tr, full, aside)
+        if not back.any():
+            continue
+        _take_spot_records(tr, full, np.flatnonzero(back))
+        tr.set_aside = (full, aside & ~back)
+        _use_all_but(tr, full, aside & ~back)
+
+
 def _leave_outliers(d: _Lockstep) -> None:
     """Observations far beyond the noise (gross outliers: a wrong dot, a reflection taken for a
     spot) left out and C run again (C3), so that none is spread over good ones (:func:`_leave_out`)."""
@@ -1200,6 +1217,7 @@ SCHEDULE: tuple[Step, ...] = (
     Step("B2: B from lasers aimed through their spots, kept where better", lambda d: d.aimed_starts(d.every), "lasers"),
     Step("the loss scale re-estimated", _rescale),
     Step("every board's other starts, swapped in where better", lambda d: d.other_starts(d.every, False), "poses"),
+    Step("the spots set aside by their lines that fit now readmitted", _readmit_set_aside),
     Step("C: the final pass", lambda d: d.solve(PASS_C, d.every)),
     Step("C3: the gross outliers left out, C again", _leave_outliers),
     Step("C2: badly fitting boards' other starts, C again where one turned", _turn_misfits, "poses"),
