@@ -93,13 +93,14 @@ class PersistentJit:
     def __call__(self, *args):
         # Python scalars, weakly typed or uncommitted arrays would make one exported signature
         # several compilations
-        leaves, tree = jax.tree_util.tree_flatten(committed(args))
+        args = committed(args)
+        leaves, tree = jax.tree_util.tree_flatten(args)
         sig = (tree, tuple((x.shape, x.dtype) for x in leaves))
         entry = self._calls.get(sig)
         if entry is None:
             entry = self._calls[sig] = self._entry(leaves, tree, sig)
         with _EXECUTE:
-            if entry is False:
+            if entry is False:  # uncached: committed arguments too, or one signature compiles twice
                 return jax.block_until_ready(self.jit(*args))
             call, out_tree = entry
             return jax.tree_util.tree_unflatten(out_tree, jax.block_until_ready(call(*leaves)))
