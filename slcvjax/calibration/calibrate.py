@@ -9,7 +9,8 @@ A. camera, mirror, board and direct-view poses from dots, rim and corners (laser
 B. the lasers refitted on the refined geometry by consensus (spots that lie on another
    laser's line are given that laser, see :func:`slcvjax.calibration.staged.fit_lasers`), then everything
    jointly with a Huber loss at 3 sigma (sigma estimated robustly from the residuals);
-   every board then tries its other starts (flipped twin, carried pose);
+   every board then tries its other starts (flipped twin, carried pose), and the spots the
+   consensus set aside that this solution puts on their own line come back;
 C. the same with sigma re-estimated at B's solution (the final pass); where a dot or
    spot lies beyond 5 sigma, the gross outliers are found under the Cauchy loss, left
    out, and C runs again (C3, :func:`_leave_out`); where a board still fits badly, its
