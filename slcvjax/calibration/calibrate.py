@@ -1782,11 +1782,18 @@ def _with_dot_labels(pk: Packed, obs: Observations, moved: dict[int, int]) -> Pa
 
 def _job(tr: "_Trial", params: Params, spec: PassSpec, masks: Masks | None = None) -> SolveJob:
     """A solve of trial ``tr`` from ``params`` by the pass ``spec`` (``masks``: what it frees instead of what
-    ``spec`` says), padded to the trial's shape buckets."""
+    ``spec`` says), padded to the trial's shape buckets.  Where the masks hold the rig, the rim's
+    rows (and the direct views' corners, where their poses are held too) are constant: the
+    solve leaves them out, as padding."""
     if masks is None:
         masks = tr.mask_a if spec.lasers_held else tr.masks
+    arrays = tr.arr
+    if not np.any(masks.glob):
+        n_p = params.poses.t.shape[0]
+        keep = np.array([1, 1, 0, np.any(np.asarray(masks.blocks)[n_p:])], dtype=np.asarray(arrays.counts).dtype)
+        arrays = eqx.tree_at(lambda a: a.counts, arrays, arrays.counts * keep)
     return SolveJob(
-        pad_params(tr.layout, params), tr.arr, pad_masks(tr.layout, masks), tr.scale, spec.kind_weight, spec.rtol
+        pad_params(tr.layout, params), arrays, pad_masks(tr.layout, masks), tr.scale, spec.kind_weight, spec.rtol
     )
 
 
