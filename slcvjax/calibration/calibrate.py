@@ -320,11 +320,7 @@ def _kind_linearisations(params: Params, pk: Packed, masks: Masks, loss: str, sc
     p, m = pad_params(layout, params), pad_masks(layout, masks)
     full = _solve(p, padded, m, loss, scale, 0).linearisation
     # one kind's rows alone: the others' counted as padding, which the sums skip
-    one = np.eye(len(Kind), dtype=np.asarray(padded.counts).dtype)
-    parts = [
-        _solve(p, eqx.tree_at(lambda a: a.counts, padded, padded.counts * one[k]), m, loss, scale, 0).linearisation
-        for k in Kind
-    ]
+    parts = [_solve(p, padded.kinds_only(np.eye(len(Kind))[k]), m, loss, scale, 0).linearisation for k in Kind]
     return layout, full, parts
 
 
@@ -1790,8 +1786,7 @@ def _job(tr: "_Trial", params: Params, spec: PassSpec, masks: Masks | None = Non
     arrays = tr.arr
     if not np.any(masks.glob):
         n_p = params.poses.t.shape[0]
-        keep = np.array([1, 1, 0, np.any(np.asarray(masks.blocks)[n_p:])], dtype=np.asarray(arrays.counts).dtype)
-        arrays = eqx.tree_at(lambda a: a.counts, arrays, arrays.counts * keep)
+        arrays = arrays.kinds_only([1, 1, 0, np.any(np.asarray(masks.blocks)[n_p:])])
     return SolveJob(
         pad_params(tr.layout, params), arrays, pad_masks(tr.layout, masks), tr.scale, spec.kind_weight, spec.rtol
     )

@@ -995,7 +995,6 @@ def solve(
 
     lin0 = jax.tree_util.tree_map(jnp.zeros_like, jax.eval_shape(lin_at, params)[0])
     inf = jnp.asarray(jnp.inf)
-    g0, p0 = jax.eval_shape(lambda: schur_step(lin0.normal, 1.0))
     state = (
         params,
         lin0,
@@ -1006,8 +1005,8 @@ def solve(
         jnp.asarray(False),
         jnp.asarray(MAX_STEPS),
         params,
-        jnp.zeros(g0.shape, g0.dtype),
-        jnp.zeros(p0.shape, p0.dtype),
+        jnp.zeros(params.n_global),
+        jnp.zeros((params.n_blocks, 6)),
         jnp.asarray(False),
     )
     p, lin, cost, c0, _, it, _, code, *_ = jax.lax.while_loop(lambda s: ~s[6], body, state)

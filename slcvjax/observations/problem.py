@@ -134,6 +134,12 @@ class Packed(eqx.Module):
         """The arrays alone, unpadded (no static keys): for a compiled function of this problem's own sizes."""
         return dataclasses.replace(self, pose_keys=(), chess_keys=(), dot_src=(), spot_src=())
 
+    def kinds_only(self, keep) -> "Packed":
+        """The problem with the rows of each kind where ``keep`` (per kind: dot, spot, rim,
+        corner) is 0 counted as padding, which the sums skip (the same arrays)."""
+        keep = np.asarray(keep, dtype=np.asarray(self.counts).dtype)
+        return eqx.tree_at(lambda a: a.counts, self, self.counts * keep)
+
     def select(self, keep_dots, keep_spots, spot_laser=None) -> "Packed":
         """The problem with only the dots and spots where ``keep_dots`` / ``keep_spots`` (bool,
         over the real rows) hold, and the spots' laser labels replaced by ``spot_laser`` (over
