@@ -84,6 +84,8 @@ CONVERGED, MAX_STEPS, STALLED = Outcome.CONVERGED, Outcome.MAX_STEPS, Outcome.ST
 # pass but the first starts near its solution (measured over nine 9-15-view scenes: with 1e-3
 # the final pass took 9-10 steps to converge, with this 3-6, to the same solution)
 LAMBDA_START = 1e-5
+# damping under which a step's predicted decrease stands for the Gauss-Newton step's
+PREDICT_LAMBDA = 1e-3
 
 
 class Params(eqx.Module):
@@ -937,7 +939,9 @@ def solve(
     """Levenberg-Marquardt from ``params``; returns the solution and a result code.
 
     Stops when an accepted step lowers the cost by less than ``rtol`` (relative) or
-    moves no parameter noticeably, when the damping saturates (stalled), or after
+    moves no parameter noticeably, when the next step (damped by at most
+    :data:`PREDICT_LAMBDA`) is predicted to lower it by less than that, when the damping
+    saturates (stalled), or after
     ``max_steps`` steps tried; the result's ``linearisation`` is at the solution.
     ``max_steps = 0`` only linearises at ``params``: the
     covariance, the bound and the reports use that, so that one compiled solve serves
@@ -989,8 +993,14 @@ def solve(
         lam = jnp.where(pending, lam_next, lam)
         it = jnp.where(pending, it_next, it)
         code = jnp.where(pending, jnp.where(converged, CONVERGED, jnp.where(stalled, STALLED, MAX_STEPS)), code)
-        done = (pending & (converged | stalled)) | (it >= max_steps)
         dg, dp = schur_step(lin.normal, lam)
+        # at a point just taken, a near-Gauss-Newton step whose predicted decrease is under the
+        # tolerance is not tried: it would be accepted with a decrease under rtol and end the
+        # solve one linearisation later
+        settled = take & jnp.isfinite(cost) & (lam <= PREDICT_LAMBDA) & (it < max_steps)
+        settled = settled & (predicted_decrease(lin.normal, lam, dg, dp) <= rtol * cost)
+        code = jnp.where(settled, CONVERGED, code)
+        done = (pending & (converged | stalled)) | settled | (it >= max_steps)
         return p, lin, cost, c0, lam, it, done, code, p.retract(dg, dp), dg, dp, jnp.asarray(True)
 
     lin0 = jax.tree_util.tree_map(jnp.zeros_like, jax.eval_shape(lin_at, params)[0])
