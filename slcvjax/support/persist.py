@@ -57,6 +57,11 @@ def committed(tree):
     and another for committed device arrays of the same shapes (the trace is shared, the
     lowered program is not): a compiled entry point that receives both, say a calibration's
     host arrays and then a device result, passes its arguments through this first."""
+    leaves, treedef = jax.tree_util.tree_flatten(tree)
+    return jax.tree_util.tree_unflatten(treedef, _committed_leaves(leaves))
+
+
+def _committed_leaves(leaves: list) -> list:
     device = jax.devices()[0]
     one_device = {device}
 
@@ -65,7 +70,7 @@ def committed(tree):
             return x if x.committed and x.sharding.device_set == one_device else jax.device_put(x, device)
         return jax.device_put(jnp.asarray(x, dtype=_dtype(x)), device)
 
-    return jax.tree_util.tree_map(one, tree)
+    return [one(x) for x in leaves]
 
 
 def _folder() -> Path | None:
@@ -93,15 +98,15 @@ class PersistentJit:
     def __call__(self, *args):
         # Python scalars, weakly typed or uncommitted arrays would make one exported signature
         # several compilations
-        args = committed(args)
         leaves, tree = jax.tree_util.tree_flatten(args)
+        leaves = _committed_leaves(leaves)
         sig = (tree, tuple((x.shape, x.dtype) for x in leaves))
         entry = self._calls.get(sig)
         if entry is None:
             entry = self._calls[sig] = self._entry(leaves, tree, sig)
         with _EXECUTE:
             if entry is False:  # uncached: committed arguments too, or one signature compiles twice
-                return jax.block_until_ready(self.jit(*args))
+                return jax.block_until_ready(self.jit(*jax.tree_util.tree_unflatten(tree, leaves)))
             call, out_tree = entry
             return jax.tree_util.tree_unflatten(out_tree, jax.block_until_ready(call(*leaves)))
 
