@@ -64,7 +64,8 @@ def test_batch_choice():
 
 @pytest.mark.slow
 def test_sharded_lockstep_calibrations_equal_one_after_another():
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu")
+    flags = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
+    env = dict(os.environ, XLA_FLAGS=flags.strip(), JAX_PLATFORMS="cpu")
     code = f"SCENE = {SCENE!r}\nSEEDS = {SEEDS!r}\n" + SCRIPT
     proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-3000:]
