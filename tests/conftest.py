@@ -6,7 +6,6 @@ from pathlib import Path
 os.environ.setdefault("SLCVJAX_CACHE_DIR", str(Path(__file__).parent.parent / ".pytest_cache" / "jax"))
 
 
-
 def _classic_cpu_emitters() -> None:
     """The suite is compile-bound: with XLA's classic CPU emitters instead of its fusion emitters
     it compiles about 40 % faster and runs about 20 % slower (jaxlib 0.10: tests/test_implicit.py
@@ -26,7 +25,7 @@ import jax  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-import slcvjax  # noqa: F401  (enables float64)
+import slcvjax  # noqa: E402, F401  (enables float64)
 
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 
