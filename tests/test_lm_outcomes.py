@@ -72,3 +72,27 @@ def test_max_steps_when_stopped_early(problem):
     assert float(res.cost) < float(res.initial_cost)
     full = _solve(pad_params(layout, start), arr, masks, "huber", 1.0, 100)
     assert int(full.result) == CONVERGED and float(full.cost) < 1e-12 * float(full.initial_cost)
+
+
+def test_a_solve_stops_within_its_tolerance_of_the_minimum():
+    # noisy observations: the solve ends where its model predicts a decrease under rtol, which must
+    # leave at most that much of the cost to a solve run on until its steps change nothing
+    obs, truth = simulate(box_scene(paper_rig(3), paper_views(4), n_chess_views=4), noise=0.5, seed=3)
+    pk = pack(obs)
+    poses = stack_poses([truth.board_poses[v][b] for v, b in pk.pose_keys])
+    chess = stack_poses([truth.calibration_view_poses[c] for c in pk.chess_keys])
+    params = Params(truth.rig, poses, chess)
+    layout = Layout.of(pk)
+    arr, masks = layout.pad_packed(pk), pad_masks(layout, make_masks(params))
+    delta = np.zeros(params.rig.tangent_dim)
+    delta[:4] = [4.0, -3.0, 2.0, 2.0]
+    start = pad_params(layout, Params(params.rig.retract(jnp.asarray(delta)), params.poses, params.chess))
+    rtol = 1e-10
+    res = _solve(start, arr, masks, "huber", 1.5, 100, rtol)
+    assert int(res.result) == CONVERGED and int(res.steps) >= 1
+    # from the same start (each solve holds the rim rows' normalisation at its start's), on until
+    # a step changes nothing
+    further = _solve(start, arr, masks, "huber", 1.5, 100, 0.0)
+    assert int(further.steps) > int(res.steps)
+    assert float(further.cost) <= float(res.cost)
+    assert float(res.cost) - float(further.cost) <= rtol * float(res.cost)
