@@ -967,10 +967,10 @@ def solve(
     # needs no other evaluation, a rejected one wastes the Jacobian.  The residual function
     # with derivatives is traced once, in this one place.
     def body(s):
-        p, lin, cost, c0, lam, it, _, code, q, dg, dp, pending = s
+        p, lin, cost, c0, lam, it, _, code, q, dg, dp, pred, pending = s
         lin_q, c_q = lin_at(q)
         ok = jnp.isfinite(c_q) & (c_q < cost)
-        rho = (cost - c_q) / jnp.maximum(predicted_decrease(lin.normal, lam, dg, dp), 1e-300)
+        rho = (cost - c_q) / jnp.maximum(pred, 1e-300)
         small = (cost - c_q) <= rtol * cost
         tiny = jnp.maximum(jnp.max(jnp.abs(dg)), jnp.max(jnp.abs(dp), initial=0.0)) < 1e-12
         # Nielsen's update: an accepted step that the quadratic model predicted well lowers the
@@ -994,14 +994,14 @@ def solve(
         it = jnp.where(pending, it_next, it)
         code = jnp.where(pending, jnp.where(converged, CONVERGED, jnp.where(stalled, STALLED, MAX_STEPS)), code)
         dg, dp = schur_step(lin.normal, lam)
+        pred = predicted_decrease(lin.normal, lam, dg, dp)
         # at a point just taken, a near-Gauss-Newton step whose predicted decrease is under the
         # tolerance is not tried: it would be accepted with a decrease under rtol and end the
         # solve one linearisation later
-        settled = take & jnp.isfinite(cost) & (lam <= PREDICT_LAMBDA) & (it < max_steps)
-        settled = settled & (predicted_decrease(lin.normal, lam, dg, dp) <= rtol * cost)
+        settled = take & jnp.isfinite(cost) & (lam <= PREDICT_LAMBDA) & (it < max_steps) & (pred <= rtol * cost)
         code = jnp.where(settled, CONVERGED, code)
         done = (pending & (converged | stalled)) | settled | (it >= max_steps)
-        return p, lin, cost, c0, lam, it, done, code, p.retract(dg, dp), dg, dp, jnp.asarray(True)
+        return p, lin, cost, c0, lam, it, done, code, p.retract(dg, dp), dg, dp, pred, jnp.asarray(True)
 
     lin0 = jax.tree_util.tree_map(jnp.zeros_like, jax.eval_shape(lin_at, params)[0])
     inf = jnp.asarray(jnp.inf)
@@ -1017,6 +1017,7 @@ def solve(
         params,
         jnp.zeros(params.n_global),
         jnp.zeros((params.n_blocks, 6)),
+        jnp.asarray(1.0),  # the start's: no step was tried
         jnp.asarray(False),
     )
     p, lin, cost, c0, _, it, _, code, *_ = jax.lax.while_loop(lambda s: ~s[6], body, state)
