@@ -43,15 +43,27 @@ def test_losses_match_their_closed_forms(c):
         robust_cost(sq, "l2", c)
 
 
-@pytest.fixture(scope="module")
-def problem():
-    obs, truth = simulate(box_scene(paper_rig(3), paper_views(4), n_chess_views=4), noise=0.0)
+def _box_problem(noise: float = 0.0, seed: int = 0):
+    """A small box scene's problem at the truth: its parameters, padded arrays and masks, layout."""
+    obs, truth = simulate(box_scene(paper_rig(3), paper_views(4), n_chess_views=4), noise=noise, seed=seed)
     pk = pack(obs)
     poses = stack_poses([truth.board_poses[v][b] for v, b in pk.pose_keys])
     chess = stack_poses([truth.calibration_view_poses[c] for c in pk.chess_keys])
     params = Params(truth.rig, poses, chess)
     layout = Layout.of(pk)
     return params, layout.pad_packed(pk), pad_masks(layout, make_masks(params)), layout
+
+
+def _off_intrinsics(params):
+    """``params`` with fx, fy, cx, cy off by a few px."""
+    delta = np.zeros(params.rig.tangent_dim)
+    delta[:4] = [4.0, -3.0, 2.0, 2.0]
+    return Params(params.rig.retract(jnp.asarray(delta)), params.poses, params.chess)
+
+
+@pytest.fixture(scope="module")
+def problem():
+    return _box_problem()
 
 
 @pytest.mark.slow
@@ -64,9 +76,7 @@ def test_converged_at_the_truth(problem):
 
 def test_max_steps_when_stopped_early(problem):
     params, arr, masks, layout = problem
-    delta = np.zeros(params.rig.tangent_dim)
-    delta[:4] = [4.0, -3.0, 2.0, 2.0]  # fx, fy, cx, cy off by a few px
-    start = Params(params.rig.retract(jnp.asarray(delta)), params.poses, params.chess)
+    start = _off_intrinsics(params)
     res = _solve(pad_params(layout, start), arr, masks, "huber", 1.0, 1)
     assert int(res.result) == MAX_STEPS and int(res.steps) == 1
     assert float(res.cost) < float(res.initial_cost)
@@ -77,16 +87,8 @@ def test_max_steps_when_stopped_early(problem):
 def test_a_solve_stops_within_its_tolerance_of_the_minimum():
     # noisy observations: the solve ends where its model predicts a decrease under rtol, which must
     # leave at most that much of the cost to a solve run on until its steps change nothing
-    obs, truth = simulate(box_scene(paper_rig(3), paper_views(4), n_chess_views=4), noise=0.5, seed=3)
-    pk = pack(obs)
-    poses = stack_poses([truth.board_poses[v][b] for v, b in pk.pose_keys])
-    chess = stack_poses([truth.calibration_view_poses[c] for c in pk.chess_keys])
-    params = Params(truth.rig, poses, chess)
-    layout = Layout.of(pk)
-    arr, masks = layout.pad_packed(pk), pad_masks(layout, make_masks(params))
-    delta = np.zeros(params.rig.tangent_dim)
-    delta[:4] = [4.0, -3.0, 2.0, 2.0]
-    start = pad_params(layout, Params(params.rig.retract(jnp.asarray(delta)), params.poses, params.chess))
+    params, arr, masks, layout = _box_problem(noise=0.5, seed=3)
+    start = pad_params(layout, _off_intrinsics(params))
     rtol = 1e-10
     res = _solve(start, arr, masks, "huber", 1.5, 100, rtol)
     assert int(res.result) == CONVERGED and int(res.steps) >= 1
