@@ -296,7 +296,8 @@ def test_covariance_matches_a_small_monte_carlo(scene):
     # Huber at 1e9 px is plain least squares and shares the calibration's compiled solver
     cov = np.asarray(covariance_of(p_true, pk, masks, "huber", 1e9, sigma=sigma).glob)
     errs = []
-    lay = Layout.of(pk)
+    # the lasers padded as the calibration pads them: the same compiled solve
+    lay = Layout.of(pk, n_lasers=p_true.rig.lasers.n)
     start, m = _lm.pad_params(lay, p_true), _lm.pad_masks(lay, masks)
     for seed in range(1, 41):
         o, _ = simulate(scene, noise=sigma, seed=seed)

@@ -2,6 +2,7 @@
 
 import json
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -50,14 +51,15 @@ def test_predicted_diameter_std_matches_monte_carlo_pixel_noise_and_calibration_
     a = rng.normal(size=(g, g)) / np.sqrt(g)
     cov = (scale[:, None] * (a @ a.T + 0.5 * np.eye(g))) * scale[None, :]
     body = jnp.asarray([ld.BODY_RADIUS_MM, ld.BODY_GAP_MM])
+    prediction = jax.jit(ld._pipe_prediction)  # one program, not one per operation
 
-    var_px, seen, *_ = ld._pipe_prediction(rig, jnp.zeros((g, g)), sigma, d / 2, body)
+    var_px, seen, *_ = prediction(rig, jnp.zeros((g, g)), sigma, d / 2, body)
     assert bool(np.all(seen))
     mc = _diameters(rig, lambda t: rig, d, sigma, None, 300, seed=0)
     # 300 trials: the std's relative sampling error is about 4 %
     assert np.std(mc) == pytest.approx(np.sqrt(float(var_px)), rel=0.12)
 
-    var_both, *_ = ld._pipe_prediction(rig, jnp.asarray(cov), sigma, d / 2, body)
+    var_both, *_ = prediction(rig, jnp.asarray(cov), sigma, d / 2, body)
     assert float(var_both) > 1.5 * float(var_px)  # the calibration's part is not negligible
     deltas = rng.multivariate_normal(np.zeros(g), cov, size=300)
     mc = _diameters(rig, lambda t: rig.retract(jnp.asarray(deltas[t])), d, sigma, cov, 300, seed=1000)

@@ -50,7 +50,7 @@ def _box_problem(noise: float = 0.0, seed: int = 0):
     poses = stack_poses([truth.board_poses[v][b] for v, b in pk.pose_keys])
     chess = stack_poses([truth.calibration_view_poses[c] for c in pk.chess_keys])
     params = Params(truth.rig, poses, chess)
-    layout = Layout.of(pk)
+    layout = Layout.of(pk, n_lasers=params.rig.lasers.n)  # the lasers padded as the calibration pads them
     return params, layout.pad_packed(pk), pad_masks(layout, make_masks(params)), layout
 
 
