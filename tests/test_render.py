@@ -1,5 +1,6 @@
-"""The renderer's edge refinement: the mirror's own edges (its rim, the body's reflection), traced
-once per rig, give the image that tracing every edge cell anew in each view gives."""
+"""The renderer's shortcuts: the mirror's own edges (its rim, the body's reflection), traced once
+per rig, give the image that tracing every edge cell anew in each view gives; shading only the
+samples that see past the mirror gives the image that shading every sample gives."""
 
 import numpy as np
 import pytest
@@ -19,6 +20,12 @@ def test_the_mirrors_edges_traced_once_give_the_image_traced_in_the_view():
     view = ({b: scene.box_poses[2][b] for b in walls}, scene.boards, [(w, x) for _, w, x, _ in visible_spots(scene, 2)])
     pipe = (np.array([0.0, 0.0, 60.0]), np.array([0.0, 0.0, 1.0]), 75.0, np.zeros((0, 3)))
     cached = renderer.catadioptric(*view), renderer.pipe(*pipe)
+    assert 0.2 < len(renderer._seen) / renderer._unseen.shape[0] < 0.5  # the samples shaded
+    packed = renderer._seen, renderer._seen_rays
+    renderer._seen, renderer._seen_rays = np.arange(renderer._unseen.shape[0]), renderer._rays  # every sample
+    for a, b in zip(cached, (renderer.catadioptric(*view), renderer.pipe(*pipe)), strict=True):
+        np.testing.assert_array_equal(a, b)
+    renderer._seen, renderer._seen_rays = packed
     renderer._mirror_edges = None  # every edge cell traced in the view
     traced = renderer.catadioptric(*view), renderer.pipe(*pipe)
     for a, b in zip(cached, traced, strict=True):

@@ -283,7 +283,34 @@ class Renderer:
         if mirror is not None:
             self._rays = _cata_rays(camera, mirror, self._samples, self._body)
             self._mirror_edges = self._trace_mirror_edges()
+            self._seen, self._seen_rays, self._unseen = self._compact_seen()
         self._chess_rays = None
+
+    def _compact_seen(self):
+        """The samples whose reflected ray leaves the mirror into the scene (a third of a
+        640x480 image through the preset's cone), their rays packed in chunks, and every sample's
+        radiance where it sees the mirror only (the body's reflection, or the dim background
+        around the rim; :func:`_cata_shade` gives these whatever the scene): a view shades the
+        packed rays only."""
+        _, _, valid, seen = self._rays
+        seen = np.asarray(seen).reshape(-1)
+        idx = np.flatnonzero(seen)
+        rows = np.concatenate([idx, np.full((-len(idx)) % CHUNK, idx[0] if len(idx) else 0)])
+
+        def pack(a):
+            a = np.asarray(a)
+            return jnp.asarray(a.reshape(-1, *a.shape[2:])[rows].reshape(-1, CHUNK, *a.shape[2:]))
+
+        packed = tuple(pack(a) for a in self._rays)
+        unseen = np.where(np.asarray(valid).reshape(-1), BODY, BACKGROUND)
+        return idx, packed, np.repeat(unseen[:, None], 3, axis=1)
+
+    def _unpack(self, shaded) -> np.ndarray:
+        """Per-sample radiance in the chunks' layout of every sample from that of the packed
+        seen samples (:meth:`_compact_seen`)."""
+        out = self._unseen.copy()
+        out[self._seen] = np.asarray(shaded).reshape(-1, 3)[: len(self._seen)]
+        return out.reshape(-1, CHUNK, 3)
 
     def _to_cells(self, samples) -> np.ndarray:
         """Per-sample values (chunked, as the samples) as an image of cells (H ss, W ss, ...)."""
@@ -386,7 +413,7 @@ class Renderer:
         opts = jnp.asarray([o.dot_radius_mm, o.spot_sigma_mm, o.spot_power], dtype=float)
         scene = (walls_R, walls_t, jnp.asarray(dots), jnp.asarray(spot_xyz), jnp.asarray(spot_wall),
                  jnp.asarray(spot_wall >= 0), opts)  # fmt: skip
-        out = _cata_band(self._rays, *scene)
+        out = self._unpack(_cata_band(self._seen_rays, *scene))
         shade = lambda rays: _cata_shade_rays(rays, *scene)  # noqa: E731
         return _finish(self._cells(out, self._traced(shade), shade), o, seed)
 
@@ -403,7 +430,7 @@ class Renderer:
         opts = jnp.asarray([o.dot_radius_mm, o.spot_sigma_mm, o.spot_power], dtype=float)
         scene = (jnp.asarray(centre, float), jnp.asarray(axis, float), jnp.asarray(float(radius)),
                  jnp.asarray(spot_xyz), jnp.arange(len(spot_xyz)) < len(spots), opts)  # fmt: skip
-        out = _pipe_band(self._rays, *scene)
+        out = self._unpack(_pipe_band(self._seen_rays, *scene))
         shade = lambda rays: _pipe_shade_rays(rays, *scene)  # noqa: E731
         return _finish(self._cells(out, self._traced(shade), shade), o, seed)
 
