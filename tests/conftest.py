@@ -70,11 +70,11 @@ def rng():
     return np.random.default_rng(1234)
 
 
-# Every compiled program maps its code into the process: a worker that runs many files keeps
-# thousands of them (a worker once aborted in XLA's compile late in a fresh run).  Past this many
-# mappings, half of Linux's default vm.max_map_count (65530), a test file's end drops them.
-# Measured with the whole suite kept (2 workers, empty cache): at most 32 041 mappings and
-# 5.0 GB resident in a worker by the end; one file added at most 6 400.
+# Every compiled program maps its code into the process, and a worker that runs many test files
+# holds thousands of them.  Past this many mappings, half of Linux's default vm.max_map_count
+# (65530), a test file's end drops them.  With none dropped, the whole suite (2 workers, empty
+# cache) ended at 32 041 mappings and 5.0 GB resident in a worker at most, one file adding at
+# most 6 400.
 MAX_MAPPINGS = 32_768
 
 
@@ -91,8 +91,8 @@ def _mappings() -> int | None:
 def _release_compiled_programs():
     """After a test file, drop the process's compiled programs and traces (they stay in the
     persistent cache) once its mappings pass :data:`MAX_MAPPINGS`, or always where they cannot
-    be counted.  Kept below that, the next files use them as they are: clearing after every
-    file made each file load its programs from the cache and trace its functions again."""
+    be counted.  Kept below that, the next files use them as they are instead of loading them
+    from the cache and tracing their functions again."""
     yield
     n = _mappings()
     if n is None or n > MAX_MAPPINGS:
