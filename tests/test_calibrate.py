@@ -35,7 +35,7 @@ from slcvjax.observations.formats import (
     write_calibration,
     write_observations,
 )
-from slcvjax.observations.problem import Layout, pack, stack_poses
+from slcvjax.observations.problem import pack, stack_poses
 from slcvjax.observations.simulate import make_scene, simulate
 
 SCENE = dict(n_lasers=4, n_views=5)
@@ -297,8 +297,7 @@ def test_covariance_matches_a_small_monte_carlo(scene):
     cov = np.asarray(covariance_of(p_true, pk, masks, "huber", 1e9, sigma=sigma).glob)
     errs = []
     # the lasers padded as the calibration pads them: the same compiled solve
-    lay = Layout.of(pk, n_lasers=p_true.rig.lasers.n)
-    start, m = _lm.pad_params(lay, p_true), _lm.pad_masks(lay, masks)
+    lay, start, _, m = _lm.pad_problem(p_true, pk, masks)
     for seed in range(1, 41):
         o, _ = simulate(scene, noise=sigma, seed=seed)
         res = _solve(start, lay.pad_packed(pack(o)), m, loss="huber", scale=1e9, max_steps=200)

@@ -9,6 +9,7 @@ import pytest
 
 from slcvjax.calibration import implicit as _implicit
 from slcvjax.calibration.calibrate import calibrate
+from slcvjax.calibration.lm import pad_problem
 from slcvjax.geometry.camera import undistort
 from slcvjax.geometry.mirror import solve_mirror_point
 from slcvjax.observations.simulate import make_scene, simulate
@@ -70,7 +71,7 @@ def test_newton_polish_reaches_a_stationary_point(solved):
     res, arr, p0, steps = solved
     assert 1 <= steps <= 6
     # padded to its shape buckets as the library pads it: the polish's compiled linearisation
-    _, p_pad, arr_pad, masks_pad = _implicit._padded(p0, arr, res.masks)
+    _, p_pad, arr_pad, masks_pad = pad_problem(p0, arr, res.masks)
     lin = _implicit._linearised(p_pad, arr_pad, masks_pad, res.loss, res.scale, None)
     assert float(jnp.max(jnp.abs(lin.step_g))) < 1e-9
 

@@ -13,11 +13,11 @@ from slcvjax.calibration.lm import (
     Params,
     loss_index,
     make_masks,
-    pad_masks,
     pad_params,
+    pad_problem,
     robust_cost,
 )
-from slcvjax.observations.problem import Layout, pack, stack_poses
+from slcvjax.observations.problem import pack, stack_poses
 from slcvjax.observations.simulate import box_scene, paper_rig, paper_views, simulate
 
 
@@ -50,8 +50,8 @@ def _box_problem(noise: float = 0.0, seed: int = 0):
     poses = stack_poses([truth.board_poses[v][b] for v, b in pk.pose_keys])
     chess = stack_poses([truth.calibration_view_poses[c] for c in pk.chess_keys])
     params = Params(truth.rig, poses, chess)
-    layout = Layout.of(pk, n_lasers=params.rig.lasers.n)  # the lasers padded as the calibration pads them
-    return params, layout.pad_packed(pk), pad_masks(layout, make_masks(params)), layout
+    layout, _, arr, masks = pad_problem(params, pk, make_masks(params))  # as the calibration pads it
+    return params, arr, masks, layout
 
 
 def _off_intrinsics(params):

@@ -71,6 +71,7 @@ from .lm import (
     make_masks,
     pad_masks,
     pad_params,
+    pad_problem,
     pooled_noise,
     raw_normal,
     sandwich_covariance,
@@ -180,13 +181,8 @@ def _linearisation(
 ):
     """The padded problem's layout and its :class:`slcvjax.calibration.lm.Linearisation` at ``params`` (the
     compiled solve with no step; ``kind_weight``: each kind's weight, None: all 1)."""
-    layout = Layout.of(pk, n_lasers=params.rig.lasers.n)
-    masks = make_masks(params) if masks is None else masks
-    res = _solve(
-        pad_params(layout, params), layout.pad_packed(pk), pad_masks(layout, masks), loss, scale, 0,
-        kind_weight=kind_weight,
-    )  # fmt: skip
-    return layout, res.linearisation
+    layout, p, arr, m = pad_problem(params, pk, make_masks(params) if masks is None else masks)
+    return layout, _solve(p, arr, m, loss, scale, 0, kind_weight=kind_weight).linearisation
 
 
 _TABLES = Recent(4)  # the last calls of _table
@@ -315,9 +311,7 @@ def _kind_linearisations(params: Params, pk: Packed, masks: Masks, loss: str, sc
     """The padded layout, the linearisation at ``params`` with every kind weighted 1 (as the
     solve weighs them), and one per kind with that kind alone (the compiled solve with no
     step: nothing new compiles)."""
-    layout = Layout.of(pk, n_lasers=params.rig.lasers.n)
-    padded = layout.pad_packed(pk)
-    p, m = pad_params(layout, params), pad_masks(layout, masks)
+    layout, p, padded, m = pad_problem(params, pk, masks)
     full = _solve(p, padded, m, loss, scale, 0).linearisation
     # one kind's rows alone: the others' counted as padding, which the sums skip
     parts = [_solve(p, padded.kinds_only(np.eye(len(Kind))[k]), m, loss, scale, 0).linearisation for k in Kind]
@@ -1322,16 +1316,8 @@ def _rigid_refine(res: CalibrationResult, obs: Observations, group: list[str], m
     reexamined, restored_names, misfit_rounds = False, [], 0
     while True:
         pr = model.packed(cur)
-        layout = Layout.of(pr, n_lasers=params.rig.lasers.n)
-        out = _solve(
-            pad_params(layout, params),
-            layout.pad_packed(pr),
-            pad_masks(layout, masks),
-            res.loss,
-            res.scale,
-            max_steps,
-            _RTOL_FINAL,
-        )
+        layout, p, arr, m = pad_problem(params, pr, masks)
+        out = _solve(p, arr, m, res.loss, res.scale, max_steps, _RTOL_FINAL)
         params = unpad_params(layout, out.params)
         name = "R: rigid box" + (f" (after leaving out {len(left)} board pose(s))" if left else "")
         if restored_names:

@@ -41,7 +41,7 @@ from ..geometry.rig import laser_columns
 from ..observations.problem import Kind, Layout, Packed, kind_weights, map_rows
 from ..support.persist import committed
 from . import lm as _lm
-from .lm import N_CAM, N_CM, N_LAS, Masks, Params, pad_masks, pad_params, unpad_params
+from .lm import N_CAM, N_CM, N_LAS, Masks, Params, pad_problem, unpad_params
 
 N_G = N_CM + N_LAS  # the global part of an observation's local parameters (padded)
 DATA_FIELDS = ("dot_pixels", "spot_pixels", "rim_pixels", "chess_pixels", "dot_points", "chess_points")
@@ -279,17 +279,6 @@ def solution_tangent(
     return _tangent_jit(lin, masks, _data_tangent(pk, dpk))
 
 
-def _padded(params: Params, pk: Packed, masks: Masks) -> tuple[Layout, Params, Packed, Masks]:
-    """The problem padded to its shape buckets (:class:`Layout`: observations, poses, lasers),
-    so that every dataset of a bucket shares one compiled linearisation; padded rows add
-    nothing (:func:`_observation_blocks` visits the real rows only), padded lasers and poses
-    are held."""
-    layout = Layout.of(
-        pk, n_poses=params.poses.t.shape[0], n_chess=params.chess.t.shape[0], n_lasers=params.rig.lasers.n
-    )
-    return layout, pad_params(layout, params), layout.pad_packed(pk), pad_masks(layout, masks)
-
-
 def _unpadded(layout: Layout, lin: _Linearised, g: int) -> _Linearised:
     """A padded problem's linearisation restricted to its real observations, its ``g`` real global
     parameters and its real pose blocks, the indices renumbered (a column or block that is none:
@@ -339,7 +328,7 @@ def stationary_point(
 def _newton(params: Params, pk: Packed, masks: Masks, loss: str, scale, kind_weight, max_steps: int, tol: float):
     """:func:`stationary_point` on the padded problem: its layout, the padded point, the
     linearisation there (the sensitivity's) and the number of steps."""
-    layout, params, pk, masks = _padded(params, pk, masks)
+    layout, params, pk, masks = pad_problem(params, pk, masks)
     last = np.inf
     for k in range(max_steps + 1):
         lin = _linearised(params, pk, masks, loss, scale, kind_weight)

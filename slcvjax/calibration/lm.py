@@ -864,6 +864,17 @@ def pad_masks(layout: Layout, masks: Masks) -> Masks:
     return committed(Masks(np.asarray(glob, dtype=float), np.asarray(blocks, dtype=float)))
 
 
+def pad_problem(params: Params, pk: Packed, masks: Masks) -> tuple[Layout, Params, Packed, Masks]:
+    """The problem padded to its shape buckets (:meth:`Layout.of`: observations, the pose blocks
+    of ``params``, its lasers), so that every dataset of a bucket shares one compilation: its
+    layout, parameters, arrays and masks (padded lasers and pose blocks held, padded rows
+    adding nothing)."""
+    layout = Layout.of(
+        pk, n_poses=params.poses.t.shape[0], n_chess=params.chess.t.shape[0], n_lasers=params.rig.lasers.n
+    )
+    return layout, pad_params(layout, params), layout.pad_packed(pk), pad_masks(layout, masks)
+
+
 class Linearisation(NamedTuple):
     """The problem linearised at a point: the normal equations and what the covariance and reports need."""
 
