@@ -96,6 +96,10 @@ def test_the_sensitivity_of_other_sizes_compiles_no_linearisation(solved):
     other = calibrate(obs)
     assert other.packed.counts[0] != res.packed.counts[0] and other.rig.lasers.n != res.rig.lasers.n
     sens = _implicit.sensitivity(other)
+    # and the solution's tangent (differentiable_solution's), of either size
+    arr = other.packed.arrays()
+    dg, dp = _implicit.solution_tangent(other.params, arr, other.masks, other.loss, other.scale, None, arr)
+    assert dg.shape == (other.rig.tangent_dim,) and dp.shape == (other.params.n_blocks, 6)
     assert _implicit._linearise_jit._cache_size() == n
     assert sens.glob.shape == (other.rig.tangent_dim, 2 * int(np.sum(other.packed.counts)))
     assert first.glob.shape == (res.rig.tangent_dim, 2 * int(np.sum(res.packed.counts)))

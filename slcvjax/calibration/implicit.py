@@ -196,22 +196,30 @@ def _schur_solve(hs: _Hessian, rg, rp):
     return _lm.schur_solve(hs.A, hs.B, hs.D, rg, rp)
 
 
-def _data_tangent(pk: Packed, dpk) -> Float[Array, "n 5"]:
-    """The data tangents in the per-observation layout of :func:`_observation_blocks`."""
+def _data_tangent(pk: Packed, dpk, layout: Layout) -> Float[Array, "n 5"]:
+    """The data tangents of ``pk``'s observations in the per-observation layout of
+    :func:`_observation_blocks` for the problem padded by ``layout`` (zero on padded rows)."""
 
-    def get(name, like):
+    def get(name):
+        like = getattr(pk, name)
         v = getattr(dpk, name, None) if dpk is not None else None
         if v is None or getattr(v, "dtype", None) == jax.dtypes.float0:
-            return jnp.zeros_like(like)
+            return jnp.zeros(np.shape(like))
         return jnp.asarray(v, dtype=float)
 
-    z = lambda n: jnp.zeros((n, 3))  # noqa: E731
+    def kind(k, pixels, points=None):
+        n, cap = layout.n[k], layout.cap[k]
+        rows = jnp.concatenate(
+            [get(pixels), jnp.zeros((np.shape(getattr(pk, pixels))[0], 3)) if points is None else get(points)], axis=1
+        )
+        return jnp.pad(rows[:n], ((0, cap - n), (0, 0)))
+
     return jnp.concatenate(
         [
-            jnp.concatenate([get("dot_pixels", pk.dot_pixels), get("dot_points", pk.dot_points)], axis=1),
-            jnp.concatenate([get("spot_pixels", pk.spot_pixels), z(pk.spot_pixels.shape[0])], axis=1),
-            jnp.concatenate([get("rim_pixels", pk.rim_pixels), z(pk.rim_pixels.shape[0])], axis=1),
-            jnp.concatenate([get("chess_pixels", pk.chess_pixels), get("chess_points", pk.chess_points)], axis=1),
+            kind(0, "dot_pixels", "dot_points"),
+            kind(1, "spot_pixels"),
+            kind(2, "rim_pixels"),
+            kind(3, "chess_pixels", "chess_points"),
         ]
     )
 
@@ -273,10 +281,14 @@ def solution_tangent(
     ``masks``, ``loss``, ``scale`` and ``kind_weight`` (an LM solution; for derivatives
     exact to the last digits polish it first with :func:`stationary_point`).  ``dpk``
     holds tangents of the fields in :data:`DATA_FIELDS` (a :class:`Packed` of tangents,
-    or any object with some of these attributes; missing ones count as zero).
+    or any object with some of these attributes; missing ones count as zero).  The problem is
+    padded to its shape buckets (:func:`slcvjax.calibration.lm.pad_problem`): every dataset of
+    a bucket shares the compiled linearisation.
     """
-    lin = _linearised(params, pk, masks, loss, scale, kind_weight)
-    return _tangent_jit(lin, masks, _data_tangent(pk, dpk))
+    layout, padded, ppk, pmasks = pad_problem(params, pk, masks)
+    lin = _linearised(padded, ppk, pmasks, loss, scale, kind_weight)
+    dg, dp = _tangent_jit(lin, pmasks, _data_tangent(pk, dpk, layout))
+    return dg[layout.glob_index(dg.shape[0])], dp[layout.block_index()]
 
 
 def _unpadded(layout: Layout, lin: _Linearised, g: int) -> _Linearised:

@@ -391,15 +391,19 @@ class Layout(NamedTuple):
         at, k = self._laser_gap()
         return np.concatenate([x[:at], np.zeros(k, x.dtype), x[at:]]) if k else x
 
+    def glob_index(self, size: int) -> np.ndarray:
+        """The real entries of a padded global-block axis of ``size`` (the padded lasers' cut):
+        an index that also selects them from a traced array."""
+        at, k = self._laser_gap()
+        return np.r_[:at, at + k : size]
+
     def unpad_glob(self, x, axes: tuple[int, ...] = (0,)) -> np.ndarray:
         """A padded global-block array with the padded lasers' rows cut from each of ``axes``."""
         x = np.asarray(x)
-        at, k = self._laser_gap()
-        if not k:
+        if not self._laser_gap()[1]:
             return x
         for ax in axes:
-            keep = np.r_[:at, at + k : x.shape[ax]]
-            x = np.take(x, keep, axis=ax)
+            x = np.take(x, self.glob_index(x.shape[ax]), axis=ax)
         return x
 
     def pad_packed(self, pk: "Packed") -> "Packed":
@@ -458,10 +462,14 @@ class Layout(NamedTuple):
             ]
         )
 
+    def block_index(self) -> np.ndarray:
+        """The real entries of a padded per-pose-block axis (board poses, then direct-view poses):
+        an index that also selects them from a traced array."""
+        return np.r_[: self.n[4], self.cap[4] : self.cap[4] + self.n[5]]
+
     def unpad_blocks(self, x) -> np.ndarray:
         """A per-pose-block array of the padded problem restricted to the real blocks."""
-        x = np.asarray(x)
-        return np.concatenate([x[: self.n[4]], x[self.cap[4] : self.cap[4] + self.n[5]]])
+        return np.asarray(x)[self.block_index()]
 
     def unpad_observations(self, x) -> np.ndarray:
         """A per-observation array of the padded problem (dots, spots, rim, corners) restricted to the real ones."""
