@@ -291,6 +291,28 @@ def _measure_and_fit(rig, spots):
     return views, [fit_circle_3d(vp.xyz, vp.cov) for vp in views]
 
 
+def test_simulating_another_pipe_compiles_nothing_and_puts_each_spot_on_its_beam_and_the_wall(compilations):
+    """After one simulated pipe, another number of poses and a rig of another laser count (the
+    same buckets) are simulated by the same program; each spot lies on its laser's beam, ahead of
+    the emitter, and on the pipe's wall (its distance from the pipe's axis the radius)."""
+    simulate_pipe(pipe_scene(paper_rig(7), 140.0, n_poses=3, seed=0))
+    rig = paper_rig(5)
+    scene = pipe_scene(rig, 120.0, n_poses=6, tilt_deg=3.0, seed=1)
+    with compilations() as compiled:
+        obs, truth = simulate_pipe(scene)
+    assert compiled == [], "\n".join(compiled)
+    assert truth.shape == (6, 5, 3) and len(obs.views) == 6
+    seen = np.isfinite(truth[..., 0])
+    assert seen.sum() >= 10 and [len(v.spots) for v in obs.views] == list(seen.sum(axis=1))
+    p, d = np.asarray(rig.lasers.points), np.asarray(rig.lasers.directions)
+    for i, k in zip(*np.nonzero(seen), strict=True):
+        x = truth[i, k]
+        lam = np.dot(x - p[k], d[k])
+        assert lam > 0 and np.linalg.norm(x - p[k] - lam * d[k]) < 1e-9
+        w = x - scene.centers[i]
+        assert np.linalg.norm(w - np.dot(w, scene.axes[i]) * scene.axes[i]) == pytest.approx(60.0, abs=1e-9)
+
+
 def test_measuring_a_new_number_of_spots_and_lasers_compiles_nothing(compilations):
     """After one measurement, spots of another count from a rig of another laser count in the
     same bucket are triangulated, with their Jacobians and circle fits, by the same programs."""

@@ -20,6 +20,7 @@ from ..geometry.mirror import ConeMirror, project_through_mirror, shape_json
 from ..geometry.rig import SHAPE_COLUMN, Rig
 from ..measurement.measure import Circle, ViewPoints, fit_circle_3d, measure_spots
 from ..observations.formats import Observations, SpotObs, ViewObs
+from ..observations.problem import bucket, pad_rows, padded_lasers
 
 
 @dataclass
@@ -112,8 +113,17 @@ def simulate_pipe(scene: PipeScene, noise: float = 0.0, seed: int = 0) -> tuple[
         raise ValueError(f"noise must be a non-negative number of pixels, got {noise}")
     rng = np.random.default_rng(seed)
     rig = scene.rig
+    # poses and lasers padded to their buckets: one compilation for every count of them
+    n_poses, n_lasers = len(scene.centers), rig.lasers.n
+    cap = bucket(n_poses)
     x, uv, ok = (
-        np.asarray(a) for a in _pipe_spots(rig, jnp.asarray(scene.centers), jnp.asarray(scene.axes), scene.diameter / 2)
+        np.asarray(a)[:n_poses, :n_lasers]
+        for a in _pipe_spots(
+            rig.with_lasers(padded_lasers(rig.lasers)),
+            jnp.asarray(pad_rows(scene.centers, cap)),
+            jnp.asarray(pad_rows(scene.axes, cap)),
+            scene.diameter / 2,
+        )
     )
     views = []
     for i in range(len(scene.centers)):

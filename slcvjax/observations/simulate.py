@@ -39,6 +39,7 @@ from ..geometry.mirror import ConeMirror, shape_json
 from ..geometry.pose import Pose, so3_exp
 from ..geometry.rig import Rig, project_board_points, project_direct, project_rim
 from .formats import Calibration, CalibrationViewObs, Observations, SpotObs, ViewObs
+from .problem import padded_lasers
 
 PRESETS = ("paper",)
 PITCH_X = 50.0
@@ -239,7 +240,9 @@ def visible_spots(scene: Scene, view: int) -> list[tuple[int, str, np.ndarray, n
     poses = scene.box_poses[view]
     rs = jnp.stack([poses[b].R for b in walls])
     ts = jnp.stack([poses[b].t for b in walls])
-    lam, ok, uv, vis = (np.asarray(a) for a in _spots_all(rig, rs, ts))
+    # the lasers padded to their bucket: one compilation for every laser count of it
+    n = rig.lasers.n
+    lam, ok, uv, vis = (np.asarray(a)[:n] for a in _spots_all(rig.with_lasers(padded_lasers(rig.lasers)), rs, ts))
     pts, dirs = np.asarray(rig.lasers.points), np.asarray(rig.lasers.directions)
     out = []
     for laser in range(rig.lasers.n):
