@@ -357,12 +357,12 @@ def board_poses(
     shape = (bucket(n_p, *POSE_LADDER), mx)  # padded boards have no point (mask 0) and are cut off below
     xb, m, d = np.zeros(shape + (3,)), np.zeros(shape + (3,)), np.tile([0.0, 0.0, 1.0], shape + (1,))
     met, mask = np.zeros(shape + (2, 3)), np.zeros(shape)
-    slot = np.zeros(n_p, dtype=int)
-    for i in np.flatnonzero(ok):
-        k = idx[i]
-        j = slot[k]
-        slot[k] += 1
-        xb[k, j], m[k, j], d[k, j], met[k, j], mask[k, j] = pts[i], org[i], dirs[i], metric[i], 1.0
+    # each board's dots in its slots 0, 1, ... in their order in pk
+    rows = np.flatnonzero(ok)
+    rows = rows[np.argsort(idx[rows], kind="stable")]
+    k = idx[rows]
+    j = np.arange(len(rows)) - np.searchsorted(k, k)
+    xb[k, j], m[k, j], d[k, j], met[k, j], mask[k, j] = pts[rows], org[rows], dirs[rows], metric[rows], 1.0
     data = tuple(jnp.asarray(a) for a in (xb, m, d, met, mask))
 
     def padded(R, t):  # padded boards: a pose in front of the camera
