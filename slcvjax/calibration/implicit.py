@@ -39,7 +39,7 @@ from jaxtyping import Array, Float
 
 from ..geometry.rig import laser_columns
 from ..observations.problem import Kind, Layout, Packed, kind_weights, map_rows
-from ..support.persist import committed
+from ..support.persist import PersistentJit
 from . import lm as _lm
 from .lm import N_CAM, N_CM, N_LAS, Masks, Params, pad_problem, unpad_params
 
@@ -250,15 +250,19 @@ def _linearise(params: Params, pk: Packed, masks: Masks, loss: str, scale, kind_
     return _Linearised(bl, hs, xg[:, 0], xp[..., 0])
 
 
-_linearise_jit = jax.jit(_linearise, static_argnames=("loss",))
+def _linearise_with(loss: str):
+    return lambda params, pk, masks, scale, kind_weight: _linearise(params, pk, masks, loss, scale, kind_weight)
+
+
+# per loss, :func:`_linearise` compiled and its traced program kept on disk (a new process traced
+# it for 5 s before it could load the compilation)
+_LINEARISE = {loss: PersistentJit(_linearise_with(loss), f"implicit_linearise_{loss}") for loss in _lm.LOSSES}
 
 
 def _linearised(params: Params, pk: Packed, masks: Masks, loss: str, scale, kind_weight) -> _Linearised:
-    """:func:`_linearise` compiled, its arguments :func:`committed`: a solution straight from
-    the LM holds host arrays, a Newton step's result device arrays, and the two were two
-    compilations of the same program (20 s each for a small scene)."""
-    args = committed((params, pk, masks, jnp.asarray(scale, dtype=float), kind_weights(kind_weight)))
-    return _linearise_jit(*args[:3], loss, *args[3:])
+    """:func:`_linearise` compiled (its arguments committed to the device: a solution straight from
+    the LM holds host arrays, a Newton step's result device arrays, one program for both)."""
+    return _LINEARISE[loss](params, pk, masks, jnp.asarray(scale, dtype=float), kind_weights(kind_weight))
 
 
 def _tangent(lin: _Linearised, masks: Masks, dy: Float[Array, "n 5"]):

@@ -95,6 +95,14 @@ class PersistentJit:
         self.jit = jax.jit(fn)
         self._calls: dict = {}
 
+    def signatures(self) -> int:
+        """How many argument signatures (each its own program) this process has called it with."""
+        return len(self._calls)
+
+    def clear(self) -> None:
+        """Forget the programs this process holds (those on disk stay)."""
+        self._calls.clear()
+
     def __call__(self, *args):
         # Python scalars, weakly typed or uncommitted arrays would make one exported signature
         # several compilations
