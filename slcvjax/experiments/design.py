@@ -46,6 +46,7 @@ from ..geometry.pose import Pose, so3_exp
 from ..geometry.rig import Rig, laser_columns, project_rim
 from ..observations.problem import Packed, bucket, pad_rows
 from ..observations.simulate import PAPER_HALF_WIDTH, PAPER_ROTATION_DEG, PAPER_TRANSLATION_MM, Scene, box_walls
+from ..support.persist import PersistentJit
 
 N_RIM = 90  # rim edge pixels per view, as the simulator writes
 MIN_DOTS = 4  # visible dots a board needs in a view for its pose
@@ -301,7 +302,7 @@ class Prediction:
         return out
 
 
-_predict_jit = jax.jit(_predict)
+_predict_jit = PersistentJit(_predict, "design_predict")
 
 
 def _objective(u, scale, rig, T_bw, chess, pk, sigma, present, ref_pos, ref_ang, pw):
@@ -309,7 +310,7 @@ def _objective(u, scale, rig, T_bw, chess, pk, sigma, present, ref_pos, ref_ang,
     return jnp.mean(ang / ref_ang) + pw * jnp.mean(pos / ref_pos)
 
 
-_objective_jit = jax.jit(_objective)
+_objective_jit = PersistentJit(_objective, "design_objective")
 
 
 @jax.jit
@@ -319,7 +320,7 @@ def _visible(u, scale, rig, T_bw, pk, present):
     return jnp.concatenate([w_dot, w_spot])
 
 
-_value_and_grad_jit = jax.jit(jax.value_and_grad(_objective))
+_value_and_grad_jit = PersistentJit(jax.value_and_grad(_objective), "design_value_and_grad")
 
 
 class _Compiled:

@@ -45,6 +45,7 @@ from ..geometry.mirror import BODY_CLEAR_FAR, body_clearance, project_through_mi
 from ..geometry.rig import Rig
 from ..images.pipe import beam_pipe_point
 from ..measurement.measure import _circle_sensitivity, triangulate_spot
+from ..support.persist import PersistentJit
 from ..support.safe import safe_normalize
 from .design import MIN_SPOTS, Plan, _problem, calibration_covariance, pad_views
 
@@ -205,8 +206,8 @@ def _relative_variance(u, start, ranges, rig0, views, T_bw, chess, pk, sigma, pr
     return jnp.mean(var_d / (2.0 * radii) ** 2)
 
 
-_evaluate_jit = jax.jit(_evaluate)
-_value_and_grad_jit = jax.jit(jax.value_and_grad(_relative_variance))
+_evaluate_jit = PersistentJit(_evaluate, "laser_design_evaluate")
+_value_and_grad_jit = PersistentJit(jax.value_and_grad(_relative_variance), "laser_design_value_and_grad")
 
 
 # ----------------------------------------------------------------------------- the design
@@ -272,7 +273,7 @@ class _Compiled:
 
     def evaluate(self, u) -> MeasurePrediction:
         var_d, seen, rim, body_m, img, angle, wall, emitters = (
-            np.asarray(a) for a in _evaluate_jit(u, *self.common, radii=self.radii, body=self.body)
+            np.asarray(a) for a in _evaluate_jit(u, *self.common, self.radii, self.body)
         )
         ang = np.where(seen, angle, np.inf)
         return MeasurePrediction(
@@ -282,7 +283,7 @@ class _Compiled:
         )  # fmt: skip
 
     def value_and_grad(self, u):
-        return _value_and_grad_jit(u, *self.common, radii=self.radii, body=self.body)
+        return _value_and_grad_jit(u, *self.common, self.radii, self.body)
 
     def rig_at(self, u) -> Rig:
         r = self.mp.plan.rig
