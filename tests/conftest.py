@@ -37,7 +37,7 @@ def pytest_configure(config):
     settings.load_profile("slcv")
 
 
-# SLCVJAX_TEST_COMPILE_LOG=FILE: append one JSON line per test with its wall seconds and what JAX
+# SLCVJAX_TEST_COMPILE_LOG=FILE: append one JSON line per test with its wall seconds, worker and start, and what JAX
 # compiled during it (count, backend-compile and trace seconds), to find where the suite's time goes
 _COMPILE_LOG = os.environ.get("SLCVJAX_TEST_COMPILE_LOG")
 _compiled = {"n": 0, "compile": 0.0, "trace": 0.0}
@@ -57,9 +57,11 @@ if _COMPILE_LOG:
         import json
         import time
 
-        before, t0 = dict(_compiled), time.perf_counter()
+        before, t0, start = dict(_compiled), time.perf_counter(), time.time()
         yield
         row = {"test": item.nodeid, "seconds": round(time.perf_counter() - t0, 2)}
+        # which process ran it and when (epoch seconds), to see how the workers shared the files
+        row.update(worker=os.environ.get("PYTEST_XDIST_WORKER", "main"), start=round(start, 2))
         row.update({k: round(_compiled[k] - before[k], 2) for k in _compiled})
         with open(_COMPILE_LOG, "a") as f:
             f.write(json.dumps(row) + "\n")
