@@ -68,7 +68,9 @@ def _committed_leaves(leaves: list) -> list:
     def one(x):
         if isinstance(x, jax.Array) and not x.weak_type:
             return x if x.committed and x.sharding.device_set == one_device else jax.device_put(x, device)
-        return jax.device_put(jnp.asarray(x, dtype=_dtype(x)), device)
+        if isinstance(x, jax.Array):  # weakly typed: strongly typed of its dtype
+            return jax.device_put(jnp.asarray(x, dtype=x.dtype), device)
+        return jax.device_put(np.asarray(x, dtype=_dtype(x)), device)  # host: straight to the device
 
     return [one(x) for x in leaves]
 
