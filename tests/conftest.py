@@ -37,6 +37,17 @@ def pytest_configure(config):
     settings.load_profile("slcv")
 
 
+def pytest_collection_modifyitems(config, items):
+    """The test files longest first (``tests/durations.json``, a measured run's seconds; files it
+    does not list last): xdist hands each worker the next file in this order as it runs out, so
+    the run does not end on a long file while the other worker idles."""
+    import json
+
+    path = Path(__file__).with_name("durations.json")
+    seconds = json.loads(path.read_text())["seconds"] if path.exists() else {}
+    items.sort(key=lambda item: -seconds.get(item.nodeid.split("::")[0], 0.0))
+
+
 # SLCVJAX_TEST_COMPILE_LOG=FILE: append one JSON line per test with its wall seconds, worker and start, and what JAX
 # compiled during it (count, backend-compile and trace seconds), to find where the suite's time goes
 _COMPILE_LOG = os.environ.get("SLCVJAX_TEST_COMPILE_LOG")
