@@ -66,11 +66,11 @@ def _committed_leaves(leaves: list) -> list:
     one_device = {device}
 
     def one(x):
-        if isinstance(x, jax.Array) and not x.weak_type:
-            return x if x.committed and x.sharding.device_set == one_device else jax.device_put(x, device)
-        if isinstance(x, jax.Array):  # weakly typed: strongly typed of its dtype
+        if not isinstance(x, jax.Array):  # host: straight to the device
+            return jax.device_put(np.asarray(x, dtype=_dtype(x)), device)
+        if x.weak_type:  # strongly typed, of its dtype
             return jax.device_put(jnp.asarray(x, dtype=x.dtype), device)
-        return jax.device_put(np.asarray(x, dtype=_dtype(x)), device)  # host: straight to the device
+        return x if x.committed and x.sharding.device_set == one_device else jax.device_put(x, device)
 
     return [one(x) for x in leaves]
 
