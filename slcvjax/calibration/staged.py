@@ -32,6 +32,7 @@ from ..geometry.pose import Pose, so3_exp
 from ..geometry.rig import Rig
 from ..observations.formats import Observations, SpotObs, ViewObs, shape_missing
 from ..observations.problem import (
+    POSE_LADDER,
     Kind,
     Packed,
     bucket,
@@ -328,21 +329,11 @@ def _refine_poses(R, t, xb, m, d, metric, mask):
     return jax.vmap(one)(R, t, xb, m, d, metric, mask)
 
 
-_refine_poses = PersistentJit(_refine_poses, "refine_poses")
-
-# boards refined per compiled call: one compilation serves every number of boards, and the
-# work follows the boards there are (a dataset of 10 boards padded to the joint problem's 64
-# pose slots refined 6x as many boards as it has)
+# the boards refined BOARD_CHUNK at a time in one compiled loop (:func:`map_rows`): one
+# compilation for every number of boards in a bucket of the pose ladder, and the padded boards
+# skipped, so the work follows the boards there are (10 boards are one chunk, not 64 boards)
 BOARD_CHUNK = 16
-
-
-def _refine_chunks(R, t, data) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`_refine_poses` over the boards ``BOARD_CHUNK`` at a time (host arrays in and out)."""
-    parts = [
-        _refine_poses(R[i : i + BOARD_CHUNK], t[i : i + BOARD_CHUNK], *(a[i : i + BOARD_CHUNK] for a in data))
-        for i in range(0, R.shape[0], BOARD_CHUNK)
-    ]
-    return tuple(np.concatenate([np.asarray(p[k]) for p in parts]) for k in range(3))
+_refine_boards = PersistentJit(map_rows(lambda rows: _refine_poses(*rows), BOARD_CHUNK), "refine_poses")
 
 
 def board_poses(
@@ -367,7 +358,7 @@ def board_poses(
             f"views[{vi}].boards.{b}: {int(counts[k])} dots back-project onto the mirror (need at least 4 for its pose)"
         )
     mx = bucket(int(np.bincount(idx, minlength=n_p).max()), 16, 2)  # each board's LM visits every slot
-    shape = (-(-n_p // BOARD_CHUNK) * BOARD_CHUNK, mx)  # padded boards have no point (mask 0) and are cut off below
+    shape = (bucket(n_p, *POSE_LADDER), mx)  # padded boards have no point (mask 0) and are skipped
     xb, m, d = np.zeros(shape + (3,)), np.zeros(shape + (3,)), np.tile([0.0, 0.0, 1.0], shape + (1,))
     met, mask = np.zeros(shape + (2, 3)), np.zeros(shape)
     # each board's dots in its slots 0, 1, ... in their order in pk
@@ -378,20 +369,21 @@ def board_poses(
     xb[k, j], m[k, j], d[k, j], met[k, j], mask[k, j] = pts[rows], org[rows], dirs[rows], metric[rows], 1.0
     data = (xb, m, d, met, mask)
 
-    def padded(R, t):  # padded boards: a pose in front of the camera
-        return pad_rows(R[:n_p], shape[0], np.eye(3)), pad_rows(t[:n_p], shape[0], np.array([0.0, 0.0, 1.0]))
+    def refine(R, t):  # the real boards' poses refined from (R, t); padded boards are skipped
+        R, t = pad_rows(R, shape[0], np.eye(3)), pad_rows(t, shape[0], np.array([0.0, 0.0, 1.0]))
+        return tuple(np.asarray(a)[:n_p] for a in _refine_boards((R, t, *data), n_p))
 
-    starts = [padded(*_dlt_planar(xb[:n_p], d[:n_p], m[:n_p], mask[:n_p]))]
+    starts = [_dlt_planar(xb[:n_p], d[:n_p], m[:n_p], mask[:n_p])]
     if start is not None:
-        starts.append(padded(np.asarray(start.R), np.asarray(start.t)))
+        starts.append((np.asarray(start.R), np.asarray(start.t)))
     R = t = errs = None
     for R0, t0 in starts:
-        R1, t1, e1 = _refine_chunks(R0, t0, data)
+        R1, t1, e1 = refine(R0, t0)
         # a small planar target has a second, flipped pose (its normal mirrored about the
         # line of sight); refine that one too and keep the best fit of all candidates
         found = [(R1, t1, e1)]
         if flips:
-            found.append(_refine_chunks(*_flipped(R1, t1, xb, mask), data))
+            found.append(refine(*_flipped(R1, t1, xb[:n_p], mask[:n_p])))
         for Rc, tc, ec in found:
             ec = np.where(np.isfinite(ec), ec, np.inf)
             if R is None:
@@ -401,8 +393,7 @@ def board_poses(
             R = np.where(better[:, None, None], Rc, R)
             t = np.where(better[:, None], tc, t)
             errs = np.where(better, ec, errs)
-    poses = unstack_poses(Pose(R, t))[:n_p]
-    errs = errs[:n_p]
+    poses = unstack_poses(Pose(R, t))
     rms = float(np.sqrt(np.mean(np.square(errs)))) if errs.size else 0.0
     return poses, StageReport("board_poses", rms, "px (first order)", [f"{len(poses)} board poses"])
 

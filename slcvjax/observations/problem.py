@@ -288,23 +288,25 @@ def padded_lasers(lasers: Lasers, cap: int | None = None) -> Lasers:
 
 
 def map_rows(vfn, chunk: int = 256):
-    """``vfn(*consts, rows)`` (a map over the rows' first axis) as ``f(*consts, rows, count)``
-    that evaluates only the first ``count`` rows, in a loop over chunks of ``chunk`` (the rest
-    of the output is zeros): padded rows then cost nothing.  For :func:`map_padded`."""
+    """``vfn(*consts, rows)`` (a map over the rows' first axis; ``rows`` an array or a pytree of
+    arrays with the same first axis) as ``f(*consts, rows, count)`` that evaluates only the first
+    ``count`` rows, in a loop over chunks of ``chunk`` (the rest of the output is zeros): padded
+    rows then cost nothing.  For :func:`map_padded`."""
 
     def run(*a):
         *consts, rows, count = a
-        n = rows.shape[0]
+        tree = jax.tree_util.tree_map
+        n = jax.tree_util.tree_leaves(rows)[0].shape[0]
         k = min(chunk, n)
         if k == 0:
             return vfn(*consts, rows)
-        shapes = jax.eval_shape(vfn, *consts, rows[:k])
-        out = jax.tree_util.tree_map(lambda sd: jnp.zeros((n,) + sd.shape[1:], sd.dtype), shapes)
+        shapes = jax.eval_shape(vfn, *consts, tree(lambda r: r[:k], rows))
+        out = tree(lambda sd: jnp.zeros((n,) + sd.shape[1:], sd.dtype), shapes)
 
         def body(i, out):
             start = jnp.minimum(i * k, n - k)  # the last chunk moved back to fit: rows done twice, alike
-            part = vfn(*consts, jax.lax.dynamic_slice_in_dim(rows, start, k))
-            return jax.tree_util.tree_map(lambda o, p: jax.lax.dynamic_update_slice_in_dim(o, p, start, 0), out, part)
+            part = vfn(*consts, tree(lambda r: jax.lax.dynamic_slice_in_dim(r, start, k), rows))
+            return tree(lambda o, p: jax.lax.dynamic_update_slice_in_dim(o, p, start, 0), out, part)
 
         return jax.lax.fori_loop(0, (count + k - 1) // k, body, out)
 
