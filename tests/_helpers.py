@@ -66,3 +66,11 @@ def central_diff(f, x: np.ndarray, eps: float = 1e-6) -> np.ndarray:
 # (the camera and mirror as arguments: one compilation serves every mirror of a kind)
 back_project_many = jax.jit(jax.vmap(sj.back_project, in_axes=(None, None, 0)))
 project_many = jax.jit(jax.vmap(sj.project_through_mirror, in_axes=(None, None, 0)))
+
+
+def on_true_lines(truth: sj.Rig, points: np.ndarray) -> np.ndarray:
+    """Each point moved to its laser's true line (the foot of its perpendicular): the true
+    working points near a calibration's own, which lie on the estimated lines, so that
+    ``laser_errors`` measured at those would give a position error of zero."""
+    p, d = np.asarray(truth.lasers.points), np.asarray(truth.lasers.directions)
+    return p + np.sum((np.asarray(points) - p) * d, axis=1, keepdims=True) * d

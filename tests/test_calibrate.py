@@ -38,6 +38,8 @@ from slcvjax.observations.formats import (
 from slcvjax.observations.problem import pack, stack_poses
 from slcvjax.observations.simulate import make_scene, simulate
 
+from ._helpers import on_true_lines
+
 SCENE = dict(n_lasers=4, n_views=5)
 
 
@@ -378,7 +380,7 @@ def test_a_laser_without_enough_spots_is_held_undetermined(scene, tmp_path):
     others = [i for i in range(truth.rig.lasers.n) if i != 2]
     assert all(unc[i]["position_std_mm"] > 0 and "status" not in unc[i] for i in others)
     # the other lasers against the simulator's truth, in units of their reported std
-    x_ref = np.array([las["working_point"] or [0.0, 0.0, 0.0] for las in unc])  # laser 2 has none
+    x_ref = on_true_lines(truth.rig, [las["working_point"] or [0.0, 0.0, 0.0] for las in unc])  # laser 2 has none
     pos, ang = laser_errors(res.rig, truth.rig, x_ref)
     z_pos = pos[others] / np.array([unc[i]["position_std_mm"] for i in others])
     z_ang = np.degrees(ang[others]) / np.array([unc[i]["direction_std_deg"] for i in others])

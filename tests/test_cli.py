@@ -8,6 +8,8 @@ from slcvjax import cli
 from slcvjax.calibration.calibrate import laser_errors
 from slcvjax.observations.formats import read_calibration, read_observations
 
+from ._helpers import on_true_lines
+
 
 @pytest.mark.slow
 def test_demo_runs_end_to_end_from_images(tmp_path, capsys):
@@ -32,7 +34,7 @@ def test_demo_runs_end_to_end_from_images(tmp_path, capsys):
         assert (out_dir / name).exists(), name
     # the calibration from the rendered images against the simulator's truth
     cal, truth = read_calibration(out_dir / "calibration.json"), read_calibration(out_dir / "truth.json")
-    x_ref = np.array([las["working_point"] for las in cal.extra["uncertainty"]["lasers"]])
+    x_ref = on_true_lines(truth.rig, [las["working_point"] for las in cal.extra["uncertainty"]["lasers"]])
     pos, ang = laser_errors(cal.rig, truth.rig, x_ref)
     assert pos.max() < 1.0 and np.degrees(ang.max()) < 1.0, (pos, np.degrees(ang))
     assert read_observations(out_dir / "detected.json").views[0].spots
