@@ -4,6 +4,9 @@ from pathlib import Path
 # one persistent compilation cache for the test processes (two xdist workers, the notebooks'
 # kernels), apart from the user's: a computation compiled in one is loaded by the others
 os.environ.setdefault("SLCVJAX_CACHE_DIR", str(Path(__file__).parent.parent / ".pytest_cache" / "jax"))
+# two CPU devices in every test process and the ones they start (the count is part of every
+# compilation's cache key): calibrate_many's trial axis is sharded over them in-process
+os.environ.setdefault("JAX_NUM_CPU_DEVICES", "2")
 
 
 def _classic_cpu_emitters() -> None:
@@ -52,12 +55,14 @@ def pytest_collection_modifyitems(config, items):
 # compiled during it (count, backend-compile and trace seconds), to find where the suite's time goes
 _COMPILE_LOG = os.environ.get("SLCVJAX_TEST_COMPILE_LOG")
 _compiled = {"n": 0, "compile": 0.0, "trace": 0.0}
+_programs: list = []  # (seconds, name) of each backend compilation
 if _COMPILE_LOG:
 
     def _listen(event, duration, **kw):
         if event == "/jax/core/compile/backend_compile_duration":
             _compiled["n"] += 1
             _compiled["compile"] += duration
+            _programs.append((duration, kw.get("fun_name", "?")))
         elif event == "/jax/core/compile/jaxpr_trace_duration":
             _compiled["trace"] += duration
 
@@ -69,11 +74,13 @@ if _COMPILE_LOG:
         import time
 
         before, t0, start = dict(_compiled), time.perf_counter(), time.time()
+        _programs.clear()
         yield
         row = {"test": item.nodeid, "seconds": round(time.perf_counter() - t0, 2)}
         # which process ran it and when (epoch seconds), to see how the workers shared the files
         row.update(worker=os.environ.get("PYTEST_XDIST_WORKER", "main"), start=round(start, 2))
         row.update({k: round(_compiled[k] - before[k], 2) for k in _compiled})
+        row["slowest"] = [[name, round(sec, 2)] for sec, name in sorted(_programs, reverse=True)[:5]]
         with open(_COMPILE_LOG, "a") as f:
             f.write(json.dumps(row) + "\n")
 

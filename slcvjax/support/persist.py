@@ -133,7 +133,7 @@ class PersistentJit:
                 exported = jax.export.deserialize(bytearray(blob["exported"]))
                 out_tree = jax.tree_util.tree_structure(pickle.loads(blob["skeleton"]))
                 STATS["loaded"] += 1
-                return jax.jit(exported.call), out_tree
+                return self._jit(exported), out_tree
             except Exception:  # noqa: BLE001  (a stale or broken entry is traced again)
                 pass
         box = []
@@ -154,4 +154,14 @@ class PersistentJit:
         except Exception:  # noqa: BLE001  (whatever cannot be exported runs as a plain jit)
             return False
         STATS["exported"] += 1
-        return jax.jit(exported.call), out_tree
+        return self._jit(exported), out_tree
+
+    def _jit(self, exported):
+        """``jax.jit`` of the exported program under this function's name (JAX's compile log and
+        profiles name a program by its function)."""
+
+        def call(*xs):
+            return exported.call(*xs)
+
+        call.__name__ = call.__qualname__ = self.name
+        return jax.jit(call)
