@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..geometry.camera import Camera, pixel_to_ray
+from ..geometry.camera import Camera, pixel_to_ray, undistort
 from ..geometry.lasers import line_plane_intersection
 from ..geometry.mirror import ConeMirror, back_project, body_clearance
 from ..geometry.pose import Pose
@@ -229,11 +229,24 @@ def _pipe_shade_rays(rays, centre, axis, radius, spots, spot_on, opts):
 
 @jax.jit
 def _chess_fine(cam, centres, offsets, R, t, grid):
-    def f(uv):
-        ray = pixel_to_ray(cam, uv)
-        return _chess_sample(*ray, R, t, grid[0], grid[1], grid[2])
+    """Each cell's mean radiance of a direct chessboard view from its samples' rays.  The
+    undistortion is linearised at the cell's centre (one Newton solve and its 2x2 derivative per
+    cell instead of one solve per sample): over a cell (at most 1/6 px from its centre at 3
+    samples per pixel) the second-order term is below 1e-4 px at the preset's distortion
+    (k1 = -0.28) in the image's corners."""
 
-    return _cell_means(f, centres, offsets)
+    def cell(c):
+        xy, ok = undistort(cam, c)
+        jac = jax.jacfwd(lambda uv: undistort(cam, uv)[0])(c)
+
+        def f(off):
+            p = xy + jac @ off
+            d = jnp.stack([p[0], p[1], jnp.ones_like(p[0])])
+            return _chess_sample(d / jnp.linalg.norm(d), ok, R, t, grid[0], grid[1], grid[2])
+
+        return jax.vmap(f)(offsets).mean(axis=0)
+
+    return jax.vmap(cell)(centres)
 
 
 CHUNK = 32768
