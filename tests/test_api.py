@@ -38,7 +38,7 @@ def test_import_loads_only_the_calibration():
     code = (
         "import sys, slcvjax\n"
         "late = [m for m in sys.modules if m.startswith(('slcvjax.images', 'slcvjax.experiments', "
-        "'slcvjax.plots', 'slcvjax.cli', 'matplotlib'))]\n"
+        "'slcvjax.plots', 'slcvjax.cli', 'matplotlib', 'scipy'))]\n"
         "print(late)\n"
         "slcvjax.plot_rig\n"
         "print('slcvjax.plots' in sys.modules)\n"

@@ -28,7 +28,6 @@ radius, its depth a gauge (the vertex :data:`TELECENTRIC_DEPTH` vertex radii ahe
 import itertools
 
 import numpy as np
-from scipy.optimize import minimize
 
 from ..geometry.camera import Camera
 from ..geometry.conic import ConicMirror
@@ -151,6 +150,8 @@ def central_start(
         lo, hi = log_a(first[max(k - 1, 0)]), log_a(first[min(k + 1, len(first) - 1)])
         y = float(np.exp(np.clip(x[0], lo, hi)))
         return (1.0 + y if kind == "hyperboloid" else y), float(np.exp(x[1]))
+
+    from scipy.optimize import minimize  # here: SciPy's import is 0.4 s of every process's start
 
     out = []
     for a0 in seeds[:n_starts]:
