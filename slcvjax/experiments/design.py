@@ -310,9 +310,6 @@ def _objective(u, scale, rig, T_bw, chess, pk, sigma, present, ref_pos, ref_ang,
     return jnp.mean(ang / ref_ang) + pw * jnp.mean(pos / ref_pos)
 
 
-_objective_jit = PersistentJit(_objective, "design_objective")
-
-
 @jax.jit
 def _visible(u, scale, rig, T_bw, pk, present):
     """Whether each dot, then each spot, would be observed at the poses ``scale * tanh(u)``."""
@@ -341,9 +338,6 @@ class _Compiled:
     def predict(self, views):
         """The prediction at (V, 6) views, padded here."""
         return _predict_jit(jnp.asarray(pad_views(views, self.cap)), *self.args)
-
-    def objective(self, u, ref_pos, ref_ang, pw):
-        return _objective_jit(u, self.scale, *self.args, ref_pos, ref_ang, pw)
 
     def visible(self, u) -> np.ndarray:
         return np.asarray(_visible(u, self.scale, self.args[0], self.T_bw, self.pk, self.present))
@@ -385,7 +379,9 @@ class DesignResult:
 
 
 def _line_search(c: "_Compiled", u, step, lr, f0, ref_pos, ref_ang, pw):
-    """A step ``u - a * step`` (a <= lr) that lowers the objective: ``(u, f, a)``, or Nones.
+    """A step ``u - a * step`` (a <= lr) that lowers the objective: ``(u, f, gradient, a)``, or
+    Nones.  Each try evaluates the objective with its gradient (one compiled program serves the
+    search and the steps; an accepted try, most of them, is not evaluated again).
 
     A trial step that changes what a view sees (a dot leaving the image, a beam meeting
     another wall) may raise the bound although the gradient, blind to visibility, says it
@@ -396,9 +392,9 @@ def _line_search(c: "_Compiled", u, step, lr, f0, ref_pos, ref_ang, pw):
     seen = None
     for _ in range(8):
         u_new = u - lr * step * jnp.asarray(~held, dtype=float)[:, None]
-        f_new = float(c.objective(u_new, ref_pos, ref_ang, pw))
-        if np.isfinite(f_new) and f_new < f0:
-            return u_new, f_new, lr
+        f_new, g_new = c.value_and_grad(u_new, ref_pos, ref_ang, pw)
+        if np.isfinite(float(f_new)) and float(f_new) < f0:
+            return u_new, float(f_new), g_new, lr
         if seen is None:
             seen = c.visible(u)
         changed = np.zeros(c.cap, dtype=bool)
@@ -407,7 +403,7 @@ def _line_search(c: "_Compiled", u, step, lr, f0, ref_pos, ref_ang, pw):
             held |= changed
         else:
             lr *= 0.5
-    return None, None, None
+    return None, None, None, None
 
 
 def optimise(
@@ -445,7 +441,7 @@ def optimise(
     while len(history) <= steps:
         with jax.numpy_dtype_promotion("standard"):  # optax mixes an int32 count into float powers
             step, state = adam.update(grad, state)
-        u_new, f_new, lr_used = _line_search(c, u, step, lr, history[-1], ref_pos, ref_ang, pw)
+        u_new, f_new, g_new, lr_used = _line_search(c, u, step, lr, history[-1], ref_pos, ref_ang, pw)
         if u_new is None:
             if restarted:
                 break
@@ -456,9 +452,8 @@ def optimise(
         if bar is not None:
             bar.update(1)
             bar.set_postfix(objective=f"{f_new:.3f}")
-        u, lr = u_new, min(lr_used * 1.2, learning_rate)
-        f, grad = c.value_and_grad(u, ref_pos, ref_ang, pw)
-        history.append(float(f))
+        u, f, grad, lr = u_new, f_new, g_new, min(lr_used * 1.2, learning_rate)
+        history.append(f)
     if bar is not None:
         bar.close()
     after = dataclasses.replace(plan, views=c.views_of(u))
