@@ -100,12 +100,15 @@ def project_rim(rig: Rig, angles: Float[Array, " n"]) -> tuple[Float[Array, "n 2
     return jax.vmap(one)(rig.mirror.rim_points(angles))
 
 
+_project_rim_jit = jax.jit(project_rim)  # op by op, a new rig type compiled some 50 programs
+
+
 def distance_to_rim(rig: Rig, pixels: np.ndarray, n: int = 20000) -> np.ndarray:
     """Each pixel's distance (px) to the image of the mirror's rim: ``pixels`` (k, 2) against
     the rim's projection at ``n`` equally spaced angles joined by straight segments (the curve
     bends by well under a thousandth of a pixel between them at the default ``n``), nearest
     segment. Pixels where the rim is out of the image are measured to what is in it."""
-    uv, ok = project_rim(rig, jnp.linspace(0.0, 2 * np.pi, n, endpoint=False))
+    uv, ok = _project_rim_jit(rig, jnp.linspace(0.0, 2 * np.pi, n, endpoint=False))
     uv, ok = np.asarray(uv), np.asarray(ok)
     start, end = uv, np.roll(uv, -1, axis=0)
     keep = ok & np.roll(ok, -1)
