@@ -56,7 +56,7 @@ def test_a_telecentric_camera_on_a_paraboloids_axis_is_central():
     cam = _camera()
     rng = np.random.default_rng(0)
     uv = np.array([cam.cx, cam.cy]) + rng.uniform(-250, 250, (200, 2))
-    rays = jax.vmap(lambda u: back_project(cam, mirror, u))(uv)
+    rays = jax.jit(jax.vmap(lambda u: back_project(cam, mirror, u)))(uv)
     ok = np.asarray(rays.valid)
     assert ok.sum() > 100
     focus = np.array([0.0, 0.0, 150.0 + R / 2])
