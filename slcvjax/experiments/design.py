@@ -392,9 +392,10 @@ def _line_search(c: "_Compiled", u, step, lr, f0, ref_pos, ref_ang, pw):
     seen = None
     for _ in range(8):
         u_new = u - lr * step * jnp.asarray(~held, dtype=float)[:, None]
-        f_new, g_new = c.value_and_grad(u_new, ref_pos, ref_ang, pw)
-        if np.isfinite(float(f_new)) and float(f_new) < f0:
-            return u_new, float(f_new), g_new, lr
+        value, g_new = c.value_and_grad(u_new, ref_pos, ref_ang, pw)
+        f_new = float(value)
+        if np.isfinite(f_new) and f_new < f0:
+            return u_new, f_new, g_new, lr
         if seen is None:
             seen = c.visible(u)
         changed = np.zeros(c.cap, dtype=bool)

@@ -201,11 +201,6 @@ def _chess_band(rays, R, t, grid):
     return jax.lax.map(lambda r: jax.vmap(f)(*r), rays)
 
 
-def _cell_means(f, centres, offsets):
-    """The mean of ``f`` (sample -> BGR radiance) over each cell's samples: centres (m, 2), offsets (k, 2)."""
-    return jax.vmap(jax.vmap(f))(centres[:, None, :] + offsets[None]).mean(axis=1)
-
-
 @jax.jit
 def _fine_rays(cam, mirror, body, centres, offsets):
     """The reflected ray of each sample of each cell: (m, k) of :func:`_cata_ray`'s four fields."""
