@@ -226,9 +226,9 @@ def _pipe_shade_rays(rays, centre, axis, radius, spots, spot_on, opts):
 def _chess_fine(cam, centres, offsets, R, t, grid):
     """Each cell's mean radiance of a direct chessboard view from its samples' rays.  The
     undistortion is linearised at the cell's centre (one Newton solve and its 2x2 derivative per
-    cell instead of one solve per sample): over a cell (at most 1/6 px from its centre at 3
-    samples per pixel) the second-order term is below 1e-4 px at the preset's distortion
-    (k1 = -0.28) in the image's corners."""
+    cell instead of one solve per sample): over a cell (its samples within 1/6 px of its centre
+    along each axis at 3 samples per pixel) the second-order term is below 1e-4 px at the
+    preset's distortion (k1 = -0.28), in the image's corners too."""
 
     def cell(c):
         xy, ok = undistort(cam, c)
