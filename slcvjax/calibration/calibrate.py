@@ -2189,11 +2189,6 @@ def to_calibration(result: CalibrationResult, obs: Observations) -> Calibration:
     return Calibration(result.rig, board_poses, cvp, {**rep, "stages": stages}, result.undetermined_lasers)
 
 
-_project_board = jax.jit(project_board_points)
-_project_spots = jax.jit(project_spots)
-_project_rim = jax.jit(project_rim)
-
-
 def reprojections(cal: Calibration, obs: Observations, view: int, rim_points: int = 360) -> dict:
     """The calibrated model's pixels for one catadioptric view (for plots and checks).
 
@@ -2206,13 +2201,13 @@ def reprojections(cal: Calibration, obs: Observations, view: int, rim_points: in
     dots = {}
     for b in v.boards:
         if b in poses:
-            uv, ok = _project_board(rig, poses[b], jnp.asarray(obs.boards[b], dtype=float))
+            uv, ok = project_board_points(rig, poses[b], jnp.asarray(obs.boards[b], dtype=float))
             dots[b] = np.where(np.asarray(ok)[:, None], np.asarray(uv), np.nan)
     spots = np.full((len(v.spots), 2), np.nan)
     for i, s in enumerate(v.spots):
         if s.board in poses:
-            uv, ok = _project_spots(rig, poses[s.board], jnp.asarray([s.laser]))
+            uv, ok = project_spots(rig, poses[s.board], jnp.asarray([s.laser]))
             if bool(ok[0]):
                 spots[i] = np.asarray(uv[0])
-    uv, ok = _project_rim(rig, jnp.linspace(0.0, 2 * np.pi, rim_points, endpoint=False))
+    uv, ok = project_rim(rig, jnp.linspace(0.0, 2 * np.pi, rim_points, endpoint=False))
     return {"dots": dots, "spots": spots, "rim": np.asarray(uv)[np.asarray(ok)]}

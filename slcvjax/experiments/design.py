@@ -118,9 +118,6 @@ class Present(NamedTuple):
     chess: Bool[Array, " C"]
 
 
-_project_rim = jax.jit(project_rim)
-
-
 def _problem(plan: Plan, pad: bool = True):
     """The fixed structure of the plan's joint problem: every dot, every (view, laser, wall) spot,
     the rim's pixels and the direct views' corners, with the numbers of views and of direct
@@ -140,7 +137,7 @@ def _problem(plan: Plan, pad: bool = True):
     spot_pose, spot_laser = (4 * vv + jj).ravel(), ll.ravel()
     n_ang = N_RIM * cap
     angles = pad_rows(np.linspace(0.0, 2 * np.pi, N_RIM * n_v, endpoint=False), n_ang)
-    rim, ok = _project_rim(plan.rig, jnp.asarray(angles))
+    rim, ok = project_rim(plan.rig, jnp.asarray(angles))
     rim, rim_ok = np.asarray(rim), np.asarray(ok) & (np.arange(n_ang) < N_RIM * n_v)
     if pad:  # the rows kept in place, those off the rim weighing nothing (a valid pixel in them)
         rim = np.where(rim_ok[:, None], rim, rim[np.argmax(rim_ok)])

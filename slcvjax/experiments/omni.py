@@ -12,7 +12,6 @@ where not given) and every board's pose.
 
 from pathlib import Path
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -22,7 +21,6 @@ from ..geometry.rig import project_board_points
 from ..observations.formats import Calibration, FormatError, Observations, ViewObs
 
 BOARD = "chess"
-_project_board = jax.jit(project_board_points)
 
 
 def omni_observations(
@@ -73,7 +71,7 @@ def view_residuals(cal: Calibration, obs: Observations) -> list[dict[str, np.nda
         for b, (px, seen) in v.boards.items():
             if b not in poses:
                 continue
-            uv, ok = _project_board(cal.rig, poses[b], jnp.asarray(obs.boards[b], float))
+            uv, ok = project_board_points(cal.rig, poses[b], jnp.asarray(obs.boards[b], float))
             r = np.where(np.asarray(ok)[:, None], np.asarray(uv) - px, np.nan)
             per[b] = {"pixels": px[seen], "residuals": r[seen]}
         out.append(per)

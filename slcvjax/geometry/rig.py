@@ -1,5 +1,7 @@
 """The rig: camera, cone mirror and lasers as one pytree, and its forward model."""
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -68,6 +70,11 @@ class Rig(eqx.Module):
         )
 
 
+# The projections below are compiled (jax.jit): called op by op, as a script or the pipeline's
+# host steps call them, each compiled a program per operation for every new rig type and size.
+
+
+@functools.partial(jax.jit, static_argnames="implicit")
 def project_board_points(
     rig: Rig, T_cam_board: Pose, points_board: Float[Array, "m 3"], implicit: bool = True
 ) -> tuple[Float[Array, "m 2"], Bool[Array, " m"]]:
@@ -77,6 +84,7 @@ def project_board_points(
     return res.uv, res.valid
 
 
+@functools.partial(jax.jit, static_argnames="implicit")
 def project_spots(
     rig: Rig, T_cam_board: Pose, laser_ids: Float[Array, " s"], implicit: bool = True
 ) -> tuple[Float[Array, "s 2"], Bool[Array, " s"]]:
@@ -90,6 +98,7 @@ def project_spots(
     return jax.vmap(one)(laser_ids)
 
 
+@jax.jit
 def project_rim(rig: Rig, angles: Float[Array, " n"]) -> tuple[Float[Array, "n 2"], Bool[Array, " n"]]:
     """Pixels of rim points (seen directly, not through the mirror)."""
 
@@ -100,15 +109,12 @@ def project_rim(rig: Rig, angles: Float[Array, " n"]) -> tuple[Float[Array, "n 2
     return jax.vmap(one)(rig.mirror.rim_points(angles))
 
 
-_project_rim_jit = jax.jit(project_rim)  # op by op, a new rig type compiled some 50 programs
-
-
 def distance_to_rim(rig: Rig, pixels: np.ndarray, n: int = 20000) -> np.ndarray:
     """Each pixel's distance (px) to the image of the mirror's rim: ``pixels`` (k, 2) against
     the rim's projection at ``n`` equally spaced angles joined by straight segments (the curve
     bends by well under a thousandth of a pixel between them at the default ``n``), nearest
     segment. Pixels where the rim is out of the image are measured to what is in it."""
-    uv, ok = _project_rim_jit(rig, jnp.linspace(0.0, 2 * np.pi, n, endpoint=False))
+    uv, ok = project_rim(rig, jnp.linspace(0.0, 2 * np.pi, n, endpoint=False))
     uv, ok = np.asarray(uv), np.asarray(ok)
     start, end = uv, np.roll(uv, -1, axis=0)
     keep = ok & np.roll(ok, -1)
@@ -122,6 +128,7 @@ def distance_to_rim(rig: Rig, pixels: np.ndarray, n: int = 20000) -> np.ndarray:
     return out
 
 
+@jax.jit
 def project_direct(
     camera: Camera, T_cam_board: Pose, points_board: Float[Array, "m 3"]
 ) -> tuple[Float[Array, "m 2"], Bool[Array, " m"]]:

@@ -464,11 +464,6 @@ def _grid_shape(points: np.ndarray) -> tuple[int, int]:
     return cols, rows
 
 
-# compiled: evaluated op by op they took about a second per scene
-_project_board = jax.jit(project_board_points)
-_project_rim = jax.jit(project_rim)
-
-
 def scene_setup(scene, image_names: list[str], chess_names: list[str]):
     """The ``slcv-setup/1`` content of a simulated scene: what its user would know before detection.
 
@@ -480,14 +475,14 @@ def scene_setup(scene, image_names: list[str], chess_names: list[str]):
     from .detect import BoardLayout, Setup, _circular_mean_deg, azimuth_deg
 
     rig = scene.rig
-    ruv, rok = _project_rim(rig, jnp.linspace(0, 2 * np.pi, 64, endpoint=False))
+    ruv, rok = project_rim(rig, jnp.linspace(0, 2 * np.pi, 64, endpoint=False))
     centre = np.asarray(ruv)[np.asarray(rok)].mean(axis=0)
     boards = {}
     for name, pts in scene.boards.items():
         cols, rows = _grid_shape(pts)
         layout = BoardLayout(np.asarray(pts, float), cols, rows)
         if name != scene.chess_board and len(scene.box_poses):
-            uv, ok = _project_board(rig, scene.box_poses[0][name], jnp.asarray(pts))
+            uv, ok = project_board_points(rig, scene.box_poses[0][name], jnp.asarray(pts))
             uv, ok = np.asarray(uv), np.asarray(ok)
             if ok.any():
                 az = azimuth_deg(uv[ok], centre)

@@ -207,11 +207,6 @@ def paper_scene(n_lasers: int = 10, n_views: int = 16, n_chess_views: int = 12) 
     return box_scene(paper_rig(n_lasers), paper_views(n_views), PAPER_HALF_WIDTH, n_chess_views)
 
 
-_proj_points = jax.jit(project_board_points)
-_proj_direct = jax.jit(project_direct)
-_proj_rim = jax.jit(project_rim)
-
-
 @jax.jit
 def _spots_all(rig: Rig, poses_R, poses_t):
     """Per laser and wall: the beam parameter, the 3D spot, and its pixel through the mirror."""
@@ -280,18 +275,18 @@ def simulate(scene: Scene, noise: "float | Sequence[float]" = 0.0, seed: int = 0
 
     cal_views = []
     for j, pose in enumerate(scene.chess_poses):
-        uv, ok = _proj_direct(cam, pose, jnp.asarray(scene.boards[scene.chess_board]))
+        uv, ok = project_direct(cam, pose, jnp.asarray(scene.boards[scene.chess_board]))
         cal_views.append(CalibrationViewObs(f"chess{j:02d}", scene.chess_board, noisy(uv, 3), np.asarray(ok)))
 
     views = []
     for i, poses in enumerate(scene.box_poses):
         per_board = {}
         for b in walls:
-            uv, ok = _proj_points(rig, poses[b], jnp.asarray(scene.boards[b]))
+            uv, ok = project_board_points(rig, poses[b], jnp.asarray(scene.boards[b]))
             per_board[b] = (noisy(uv, 0), np.asarray(ok))
         spots = [SpotObs(laser, wall, noisy(uv, 1)) for laser, wall, _, uv in visible_spots(scene, i)]
         angles = np.sort(rng.uniform(0, 2 * np.pi, scene.rim_points_per_view))
-        ruv, rok = _proj_rim(rig, jnp.asarray(angles))
+        ruv, rok = project_rim(rig, jnp.asarray(angles))
         rim = noisy(np.asarray(ruv)[np.asarray(rok)], 2)
         views.append(ViewObs(f"view{i:02d}", per_board, spots, rim))
 
