@@ -80,7 +80,7 @@ def _truth_pixels(cam, mirror, pose):
     from slcvjax.calibration.chessboard import board_points
     from slcvjax.geometry.rig import Rig, project_board_points
 
-    uv, ok = jax.jit(project_board_points)(Rig(cam, mirror, None), pose, jnp.asarray(board_points(COLS, ROWS, SQUARE)))
+    uv, ok = project_board_points(Rig(cam, mirror, None), pose, jnp.asarray(board_points(COLS, ROWS, SQUARE)))
     return np.asarray(uv), np.asarray(ok)
 
 
