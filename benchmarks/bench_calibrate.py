@@ -34,7 +34,9 @@ from bench_forward import machine
 from scipy.optimize import least_squares
 
 from slcvjax import calibrate, calibrate_many, make_scene, simulate
-from slcvjax.calibration import lm as _lm
+from slcvjax.calibration.linearise import residual_rows
+from slcvjax.calibration.lm import Outcome, solve
+from slcvjax.calibration.params import Params, make_masks
 from slcvjax.observations.problem import pack, stack_poses
 
 
@@ -43,15 +45,15 @@ def problem(n_views: int, seed: int = 1):
     pk = pack(obs)
     poses = stack_poses([truth.board_poses[v][b] for v, b in pk.pose_keys])
     chess = stack_poses([truth.calibration_view_poses[c] for c in pk.chess_keys])
-    p_true = _lm.Params(truth.rig, poses, chess)
+    p_true = Params(truth.rig, poses, chess)
     rng = np.random.default_rng(0)
     dg = rng.normal(0, 1e-3, p_true.n_global)
     dp = rng.normal(0, 1e-3, (p_true.n_blocks, 6))
     start = p_true.retract(jnp.asarray(dg), jnp.asarray(dp))
-    return start, pk.arrays(), _lm.make_masks(start)
+    return start, pk.arrays(), make_masks(start)
 
 
-solve = jax.jit(_lm.solve, static_argnames=("loss", "max_steps"))
+solve = jax.jit(solve, static_argnames=("loss", "max_steps"))
 
 
 def time_schur(start, pk, masks):
@@ -71,7 +73,7 @@ def time_schur(start, pk, masks):
         "run_s": run,
         "steps": int(res.steps),
         "cost": float(res.cost),
-        "result": _lm.Outcome(int(res.result)).label,
+        "result": Outcome(int(res.result)).label,
     }
 
 
@@ -147,7 +149,7 @@ def main() -> None:
     start, pk, masks = problem(16)
     g, nb = start.n_global, start.n_blocks
     n_x = g + 6 * nb
-    rows0 = _lm.residual_rows(start, pk)
+    rows0 = residual_rows(start, pk)
     print(f"paper preset, 16 views: {n_x} parameters, {int(rows0.r.shape[0])} residuals", flush=True)
     ours = time_schur(start, pk, masks)
     out["schur_lm"] = ours
@@ -162,7 +164,7 @@ def main() -> None:
         @jax.jit
         def resid(x):
             p = start.retract(x[:g], x[g:].reshape(nb, 6))
-            return _lm.residual_rows(p, pk).r
+            return residual_rows(p, pk).r
 
         jac = jax.jit(jax.jacfwd(resid))
         x0 = np.zeros(n_x)

@@ -115,7 +115,9 @@ def padding_cost(path: Path) -> dict:
     import jax.numpy as jnp
 
     import slcvjax as sj
-    from slcvjax.calibration import lm as _lm
+    from slcvjax.calibration.linearise import cost_at, linearise
+    from slcvjax.calibration.params import pad_masks, pad_params
+    from slcvjax.calibration.residuals import rim_norms
     from slcvjax.observations.problem import Layout
 
     res = sj.calibrate(sj.read_observations(path))
@@ -123,12 +125,12 @@ def padding_cost(path: Path) -> dict:
     kw = jnp.ones(4)
 
     def lin(p, pk, m, norm):
-        return _lm.linearise(p, pk, m, 0, 1.0, kw, norm)
+        return linearise(p, pk, m, 0, 1.0, kw, norm)
 
     def cost(p, pk, norm):
-        return _lm.cost_at(p, pk, 0, 1.0, kw, norm)
+        return cost_at(p, pk, 0, 1.0, kw, norm)
 
-    lin, cost, norms = jax.jit(lin), jax.jit(cost), jax.jit(_lm.rim_norms)
+    lin, cost, norms = jax.jit(lin), jax.jit(cost), jax.jit(rim_norms)
 
     def best_ms(f, *a):
         jax.block_until_ready(f(*a))
@@ -144,7 +146,7 @@ def padding_cost(path: Path) -> dict:
     out = {}
     for name, cap in (("none", lay.n), ("bucket", lay.cap), ("bucket_x4", tuple(4 * c for c in lay.cap))):
         pl = Layout(lay.n, cap)
-        pk, p, m = pl.pad_packed(res.packed), _lm.pad_params(pl, res.params), _lm.pad_masks(pl, res.masks)
+        pk, p, m = pl.pad_packed(res.packed), pad_params(pl, res.params), pad_masks(pl, res.masks)
         norm = norms(p.rig, pk)
         out[name] = {
             "sizes": list(cap),

@@ -36,8 +36,11 @@ import optimistix as optx
 from bench_forward import machine
 
 import slcvjax as sj
-from slcvjax.calibration import lm as _lm
 from slcvjax.calibration import staged
+from slcvjax.calibration.linearise import cost_at
+from slcvjax.calibration.losses import loss_index
+from slcvjax.calibration.residuals import rim_norms
+from slcvjax.observations.problem import kind_weights
 
 
 def timed(fn, repeats: int) -> tuple[dict, object]:
@@ -134,7 +137,7 @@ def stationary_point(repeats: int, n_lasers: int, n_views: int) -> dict:
     obs, _ = sj.simulate(sj.make_scene("paper", n_lasers=n_lasers, n_views=n_views), noise=0.3, seed=0)
     res = sj.calibrate(obs)
     p0, pk, m = jax.tree_util.tree_map(jnp.asarray, (res.params, res.packed, res.masks))
-    loss, kw, norm = _lm.loss_index(res.loss), _lm.kind_weights(None), _lm.rim_norms(p0.rig, pk)
+    loss, kw, norm = loss_index(res.loss), kind_weights(None), rim_norms(p0.rig, pk)
     g, nb = p0.n_global, p0.n_blocks
     mg, mb = m.glob, jnp.repeat(m.blocks, 6)
     mask = jnp.concatenate([mg, mb])
@@ -143,7 +146,7 @@ def stationary_point(repeats: int, n_lasers: int, n_views: int) -> dict:
         return p0.retract(d[:g] * mg, (d[g:] * mb).reshape(nb, 6))
 
     def cost(d):
-        return _lm.cost_at(at(d), pk, loss, res.scale, kw, norm, real_only=False)
+        return cost_at(at(d), pk, loss, res.scale, kw, norm, real_only=False)
 
     def gradient(d, _):  # held columns: the identity, so that the Jacobian is regular
         return mask * jax.grad(cost)(d) + (1.0 - mask) * d
@@ -162,7 +165,7 @@ def stationary_point(repeats: int, n_lasers: int, n_views: int) -> dict:
     theirs_t, (d, steps2, ok) = timed(theirs_fn, repeats)
     q = jax.tree_util.tree_map(jnp.asarray, q)
     diff = max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(jax.tree.leaves(at(d)), jax.tree.leaves(q), strict=True))
-    c_ours = float(_lm.cost_at(q, pk, loss, res.scale, kw, norm, real_only=False))
+    c_ours = float(cost_at(q, pk, loss, res.scale, kw, norm, real_only=False))
     return {
         "lasers": n_lasers,
         "views": n_views,

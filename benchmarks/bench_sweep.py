@@ -30,7 +30,7 @@ import numpy as np
 from bench_forward import machine
 
 from slcvjax import calibrate_many, make_scene, simulate
-from slcvjax.calibration import lm as _lm
+from slcvjax.calibration.params import Params, make_masks
 from slcvjax.observations.problem import pack, stack_poses
 
 
@@ -42,13 +42,13 @@ def trials(n: int):
         pk = pack(obs)
         poses = stack_poses([truth.board_poses[v][b] for v, b in pk.pose_keys])
         chess = stack_poses([truth.calibration_view_poses[c] for c in pk.chess_keys])
-        p_true = _lm.Params(truth.rig, poses, chess)
+        p_true = Params(truth.rig, poses, chess)
         rng = np.random.default_rng(10_000 + seed)
         dg = rng.normal(0, 1e-3, p_true.n_global)
         dp = rng.normal(0, 1e-3, (p_true.n_blocks, 6))
         starts.append(p_true.retract(jnp.asarray(dg), jnp.asarray(dp)))
         packs.append(pk.arrays())
-    masks = _lm.make_masks(starts[0])
+    masks = make_masks(starts[0])
     return starts, packs, masks
 
 
@@ -85,7 +85,7 @@ def main() -> None:
     kw = jnp.ones(4)
 
     def one(p, pk):
-        return _lm.solve(p, pk, masks, loss="linear", scale=1.0, max_steps=200, kind_weight=kw)
+        return solve(p, pk, masks, loss="linear", scale=1.0, max_steps=200, kind_weight=kw)
 
     solve = jax.jit(one)
     t0 = time.perf_counter()

@@ -6,7 +6,7 @@ Run: ``python benchmarks/kind_noise.py [--seeds 20] [--sigmas 0.02,0.04,0.008,0.
 The paper preset is simulated with white noise of a different sigma per kind (dots,
 spots, rim pixels, chessboard corners; by default in the proportions rendered images give:
 spots' centroids the noisiest, the rim's fitted edge the least noisy) and are calibrated.  Per
-seed: each kind's estimated sigma (:func:`slcvjax.calibration.calibrate.kind_noise`: its weighted
+seed: each kind's estimated sigma (:func:`slcvjax.calibration.covariance.kind_noise`: its weighted
 squared residuals over its rows less the parameters they fix) and, as the residuals give it
 without that correction, the median-based one; the lasers' errors at their working points
 against the truth, beside their reported std (the covariance with each kind's own sigma) and the
@@ -23,7 +23,8 @@ from bench_forward import machine
 from tqdm import tqdm
 
 from slcvjax import calibrate, cramer_rao, laser_errors, make_scene, simulate
-from slcvjax.calibration.calibrate import covariance_of, kind_sigmas, laser_std
+from slcvjax.calibration.bound import laser_std
+from slcvjax.calibration.covariance import covariance_of, kind_sigmas
 
 
 def rms(x) -> float:

@@ -13,7 +13,7 @@ hyperboloid, vertex radius 20 mm as the scale's gauge), then the joint non-centr
 (five distortion terms), mirror pose and board poses under the plain least-squares
 loss (``loss="linear"``, every corner kept, as the published fits); the camera's projection
 ``auto``: a telecentric and a pinhole camera both fitted, the pinhole kept where an F-test of its
-depth says the corners need it (``slcvjax.calibration.calibrate.perspective_test``).  Mei's set is also fitted as
+depth says the corners need it (``slcvjax.calibration.model_selection.perspective_test``).  Mei's set is also fitted as
 what its name says, a paraboloid before a telecentric lens, and with ``mirror_shape.kind =
 "auto"`` (the kind of the least 5-fold held-out error).
 

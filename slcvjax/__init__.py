@@ -33,20 +33,9 @@ from .support.cache import compilation_cache_dir  # noqa: E402
 
 _cache.enable()
 
-from .calibration.calibrate import (  # noqa: E402
-    CalibrationResult,
-    calibrate,
-    calibrate_many,
-    cramer_rao,
-    held_out_rms,
-    laser_errors,
-    laser_std,
-    laser_working_points,
-    report,
-    reprojections,
-    require_determined,
-    to_calibration,
-)
+from .calibration.base import CalibrationError  # noqa: E402
+from .calibration.bound import cramer_rao, laser_errors, laser_std, laser_working_points  # noqa: E402
+from .calibration.calibrate import calibrate, calibrate_many  # noqa: E402
 from .calibration.implicit import (  # noqa: E402
     Sensitivity,
     differentiable_solution,
@@ -54,7 +43,10 @@ from .calibration.implicit import (  # noqa: E402
     solution_tangent,
     stationary_point,
 )
-from .calibration.staged import CalibrationError, Staged, staged  # noqa: E402
+from .calibration.model_selection import held_out_rms  # noqa: E402
+from .calibration.report import report, reprojections, to_calibration  # noqa: E402
+from .calibration.result import CalibrationResult, require_determined  # noqa: E402
+from .calibration.staged import Staged, staged  # noqa: E402
 from .geometry.camera import (  # noqa: E402
     Camera,
     distort,

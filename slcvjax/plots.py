@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 
 
-def _plt():
+def pyplot():
     import matplotlib
 
     matplotlib.use("Agg")
@@ -25,7 +25,7 @@ def plot_pipe(result: dict, out_dir, axis=(0.0, 0.0, 1.0)) -> list[Path]:
     """
     from .measurement.measure import plane_basis
 
-    plt = _plt()
+    plt = pyplot()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     poses = result["poses"]
@@ -140,7 +140,7 @@ def plot_rig(rig, path, walls=(), truth=None, title: str | None = None) -> Path:
     """
     from .geometry.lasers import line_plane_intersection
 
-    plt = _plt()
+    plt = pyplot()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig = plt.figure(figsize=(8, 7))
@@ -212,7 +212,7 @@ def plot_detections(image, view, predicted: dict, path, gain: float | None = Non
         gain: residual vectors are drawn this many times their length (by default a round
             factor that draws the median residual about 10 px long).
     """
-    plt = _plt()
+    plt = pyplot()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     h, w = image.shape[:2]

@@ -112,7 +112,9 @@ def test_an_asphere_is_checked_and_kept_in_files(tmp_path):
 def test_a_rig_through_an_asphere_calibrates():
     """The asphere given (a datasheet's), 8 views of the walls through it: the camera within 4
     reported std of the truth and 4 unseen views predicted at the noise."""
-    from slcvjax.calibration.calibrate import calibrate, held_out_rms, report
+    from slcvjax.calibration.calibrate import calibrate
+    from slcvjax.calibration.model_selection import held_out_rms
+    from slcvjax.calibration.report import report
     from slcvjax.geometry.lasers import Lasers
     from slcvjax.geometry.rig import Rig
     from slcvjax.observations.simulate import box_scene, paper_views, simulate

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 import slcvjax.calibration.calibrate as C
-from slcvjax.calibration.calibrate import calibrate, calibrate_many, resolve_batch
+from slcvjax.calibration.calibrate import calibrate, calibrate_many
+from slcvjax.calibration.executors import resolve_batch
 from slcvjax.observations.simulate import make_scene, simulate
 
 SCENE = dict(n_lasers=4, n_views=5)  # test_calibrate's sizes: the loop's compilation is shared
@@ -31,14 +32,14 @@ def test_batch_choice():
 @pytest.mark.slow
 def test_sharded_lockstep_calibrations_equal_one_after_another(monkeypatch):
     assert len(jax.devices()) == 2, "the suite runs with two CPU devices (JAX_NUM_CPU_DEVICES=2, tests/conftest.py)"
-    shards, solve = [], C._solve_batched
+    shards, solve = [], C.solve_batched
 
     def recording(*args, **kwargs):
         out = solve(*args, **kwargs)
         shards.append(len(out.cost.sharding.device_set))
         return out
 
-    monkeypatch.setattr(C, "_solve_batched", recording)
+    monkeypatch.setattr(C, "solve_batched", recording)
     scene = make_scene("paper", **SCENE)
     observations = [simulate(scene, noise=0.5, seed=s)[0] for s in SEEDS]
     lockstep = calibrate_many(observations, batch="vmap")

@@ -12,19 +12,19 @@ import pytest
 
 import slcvjax as sj
 from slcvjax import cli
-from slcvjax.calibration import lm as _lm
-from slcvjax.calibration.calibrate import (
-    _carried,
-    _misfit_boards,
-    _solve,
-    calibrate,
-    covariance_of,
-    cramer_rao,
-    laser_errors,
-    report,
-    to_calibration,
-)
+from slcvjax.calibration.board_starts import carried_poses, misfit_boards
+from slcvjax.calibration.bound import cramer_rao, laser_errors
+from slcvjax.calibration.calibrate import calibrate
 from slcvjax.calibration.chessboard import calibrate_from_corners
+from slcvjax.calibration.covariance import covariance_of
+from slcvjax.calibration.evaluate import solve_compiled
+from slcvjax.calibration.linearise import cost_at, n_observations, residual_rows, rows_at
+from slcvjax.calibration.lm import MAX_STEPS
+from slcvjax.calibration.losses import robust_weights
+from slcvjax.calibration.params import Params, make_masks, pad_problem
+from slcvjax.calibration.report import report, to_calibration
+from slcvjax.calibration.residuals import rim_norms
+from slcvjax.calibration.schur import Normal, dense_step, normal_equations, predicted_decrease, schur_step
 from slcvjax.calibration.staged import calibrate_intrinsics, staged
 from slcvjax.cli.common import print_report
 from slcvjax.geometry.rig import laser_columns
@@ -56,7 +56,7 @@ def exact(scene):
 def _truth_params(truth, pk):
     poses = stack_poses([truth.board_poses[v][b] for v, b in pk.pose_keys])
     chess = stack_poses([truth.calibration_view_poses[c] for c in pk.chess_keys])
-    return _lm.Params(truth.rig, poses, chess)
+    return Params(truth.rig, poses, chess)
 
 
 @pytest.mark.slow
@@ -89,7 +89,7 @@ def test_aimed_lasers_pass_through_their_spots_centroid_from_the_camera_centre(e
     """On exact data at the truth every spot's point lies on its laser's line, so the aimed line
     goes through a point of the true line (its spots' centroid) along that point's direction
     from the camera's centre; a laser without spots keeps its line."""
-    from slcvjax.calibration.staged import aimed_lasers
+    from slcvjax.calibration.laser_fit import aimed_lasers
 
     obs, truth = exact
     pk = pack(obs)
@@ -132,8 +132,8 @@ def test_carried_pose_is_the_truth_when_the_boards_stand_still(exact):
     obs, truth = exact
     pk = pack(obs)
     params = _truth_params(truth, pk)
-    masks = _lm.make_masks(params)
-    carried, _ = _carried(params, pk, masks)
+    masks = make_masks(params)
+    carried, _ = carried_poses(params, pk, masks)
     np.testing.assert_allclose(np.asarray(carried.poses.R), np.asarray(params.poses.R), atol=1e-12)
     np.testing.assert_allclose(np.asarray(carried.poses.t), np.asarray(params.poses.t), atol=1e-9)
     # a pose far off (turned 150 deg about the board's x axis, moved 300 mm) is carried back
@@ -143,12 +143,12 @@ def test_carried_pose_is_the_truth_when_the_boards_stand_still(exact):
     c, s = np.cos(np.radians(150.0)), np.sin(np.radians(150.0))
     R[k] = R[k] @ np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
     t[k] += np.array([300.0, -200.0, 100.0])
-    wrong = _lm.Params(params.rig, sj.Pose(jnp.asarray(R), jnp.asarray(t)), params.chess)
+    wrong = Params(params.rig, sj.Pose(jnp.asarray(R), jnp.asarray(t)), params.chess)
     # the far-off pose is the one board that fits badly (a mean cost per dot above scale^2)
     trial = types.SimpleNamespace(pk=pk, scale=1.0)
-    assert _misfit_boards(types.SimpleNamespace(params=params, **vars(trial)), "huber") == 0
-    assert _misfit_boards(types.SimpleNamespace(params=wrong, **vars(trial)), "huber") == 1
-    carried, hold = _carried(wrong, pk, masks)
+    assert misfit_boards(types.SimpleNamespace(params=params, **vars(trial)), "huber") == 0
+    assert misfit_boards(types.SimpleNamespace(params=wrong, **vars(trial)), "huber") == 1
+    carried, hold = carried_poses(wrong, pk, masks)
     np.testing.assert_allclose(np.asarray(carried.poses.R[k]), np.asarray(params.poses.R[k]), atol=1e-12)
     np.testing.assert_allclose(np.asarray(carried.poses.t[k]), np.asarray(params.poses.t[k]), atol=1e-9)
     assert not np.any(np.asarray(hold.glob)) and np.all(np.asarray(hold.blocks)[: pk.n_poses])
@@ -190,19 +190,19 @@ def test_schur_step_equals_dense_step(scene):
     obs, truth = simulate(scene, noise=0.5, seed=1)
     pk = pack(obs).arrays()
     params = _truth_params(truth, pack(obs))
-    masks = _lm.make_masks(params, {"chess_poses"})
-    n_obs, g, nb = _lm.n_observations(pk), params.n_global, params.n_blocks
+    masks = make_masks(params, {"chess_poses"})
+    n_obs, g, nb = n_observations(pk), params.n_global, params.n_blocks
 
     @jax.jit
     def normal(params, masks):
-        rows = _lm._rows(params, pk)
-        w, _ = _lm.robust_weights(rows, n_obs, "huber", jnp.asarray(1.0))
-        return _lm.normal_equations(rows, w, g, nb, masks.glob, masks.blocks)
+        rows = rows_at(params, pk)
+        w, _ = robust_weights(rows, n_obs, "huber", jnp.asarray(1.0))
+        return normal_equations(rows, w, g, nb, masks.glob, masks.blocks)
 
     ne = normal(params, masks)
     for lam in [0.0, 1e-3, 1.0]:
-        gs, ps = jax.jit(_lm.schur_step)(ne, lam)
-        gd, pd = jax.jit(_lm.dense_step)(ne, lam)
+        gs, ps = jax.jit(schur_step)(ne, lam)
+        gd, pd = jax.jit(dense_step)(ne, lam)
         scale = float(jnp.abs(gd).max())
         np.testing.assert_allclose(np.asarray(gs), np.asarray(gd), atol=1e-8 * scale, rtol=1e-7)
         np.testing.assert_allclose(np.asarray(ps), np.asarray(pd), atol=1e-8 * scale, rtol=1e-7)
@@ -221,7 +221,7 @@ def test_predicted_decrease_is_the_linear_models():
     r = rng.normal(size=nb * rows_per_block)
     rb = r.reshape(nb, rows_per_block)
     Jgb = Jg.reshape(nb, rows_per_block, g)
-    ne = _lm.Normal(
+    ne = Normal(
         jnp.asarray(Jg.T @ Jg),
         jnp.asarray(Jg.T @ r),
         jnp.asarray(np.einsum("kng,knp->kgp", Jgb, Jp)),
@@ -229,10 +229,10 @@ def test_predicted_decrease_is_the_linear_models():
         jnp.asarray(np.einsum("knp,kn->kp", Jp, rb)),
     )
     for lam in [0.0, 1e-3, 0.5, 10.0]:
-        dg, dp = _lm.schur_step(ne, lam)
+        dg, dp = schur_step(ne, lam)
         moved = rb + np.einsum("kng,g->kn", Jgb, np.asarray(dg)) + np.einsum("knp,kp->kn", Jp, np.asarray(dp))
         actual = 0.5 * (r @ r) - 0.5 * np.sum(moved**2)
-        assert float(_lm.predicted_decrease(ne, lam, dg, dp)) == pytest.approx(actual, rel=1e-10)
+        assert float(predicted_decrease(ne, lam, dg, dp)) == pytest.approx(actual, rel=1e-10)
         assert actual > 0
 
 
@@ -250,26 +250,26 @@ def test_lm_gradient_is_the_gradient_of_its_cost(scene):
     rng = np.random.default_rng(0)
     dg0, dp0 = rng.normal(0, 1e-3, p_true.n_global), rng.normal(0, 1e-3, (p_true.n_blocks, 6))
     params = p_true.retract(jnp.asarray(dg0), jnp.asarray(dp0))
-    masks = _lm.make_masks(params)
-    n_obs, g, nb = _lm.n_observations(pk), params.n_global, params.n_blocks
+    masks = make_masks(params)
+    n_obs, g, nb = n_observations(pk), params.n_global, params.n_blocks
     scale = jnp.asarray(0.6)
-    norm = _lm.rim_norms(params.rig, pk)
-    rows = jax.jit(lambda p: _lm._rows(p, pk, rim_norm=norm))(params)
+    norm = rim_norms(params.rig, pk)
+    rows = jax.jit(lambda p: rows_at(p, pk, rim_norm=norm))(params)
 
     eps = 1e-6  # the differences' error falls as eps^2: 3e-9 relative here, 3e-7 at 1e-5
 
     @jax.jit
     def held_cost(e, dg, dp, kw):
-        return _lm.cost_at(params.retract(e * dg, e * dp), pk, "huber", scale, kw, norm)
+        return cost_at(params.retract(e * dg, e * dp), pk, "huber", scale, kw, norm)
 
     @jax.jit
     def varying_cost(e, dg, dp, kw):
-        return _lm.cost_at(params.retract(e * dg, e * dp), pk, "huber", scale, kw, None)
+        return cost_at(params.retract(e * dg, e * dp), pk, "huber", scale, kw, None)
 
     @jax.jit  # one program, not a few hundred operations compiled one by one
     def lm_side(kw, dg, dp):
-        w, _ = _lm.robust_weights(rows, n_obs, "huber", scale, kw)
-        ne = _lm.normal_equations(rows, w, g, nb, masks.glob, masks.blocks)
+        w, _ = robust_weights(rows, n_obs, "huber", scale, kw)
+        ne = normal_equations(rows, w, g, nb, masks.glob, masks.blocks)
         dots_spots = rows.kind <= 1
         share = jnp.sum(dots_spots & (w < 1.0)) / jnp.sum(dots_spots)
         return ne.bg @ dg + jnp.sum(ne.bp * dp), share
@@ -294,15 +294,15 @@ def test_covariance_matches_a_small_monte_carlo(scene):
     obs, truth = simulate(scene, noise=sigma, seed=0)
     pk = pack(obs)
     p_true = _truth_params(truth, pk)
-    masks = _lm.make_masks(p_true)
+    masks = make_masks(p_true)
     # Huber at 1e9 px is plain least squares and shares the calibration's compiled solver
     cov = np.asarray(covariance_of(p_true, pk, masks, "huber", 1e9, sigma=sigma).glob)
     errs = []
     # the lasers padded as the calibration pads them: the same compiled solve
-    lay, start, _, m = _lm.pad_problem(p_true, pk, masks)
+    lay, start, _, m = pad_problem(p_true, pk, masks)
     for seed in range(1, 41):
         o, _ = simulate(scene, noise=sigma, seed=seed)
-        res = _solve(start, lay.pad_packed(pack(o)), m, loss="huber", scale=1e9, max_steps=200)
+        res = solve_compiled(start, lay.pad_packed(pack(o)), m, loss="huber", scale=1e9, max_steps=200)
         est = res.params.rig
         e = np.concatenate(
             [
@@ -402,7 +402,7 @@ def test_a_calibration_stopped_short_says_it_is_not_a_minimum(scene, capsys):
     report and the printed report say the solution is not a minimum."""
     obs, _ = simulate(scene, noise=0.5, seed=3)
     res = calibrate(obs, max_steps=3)
-    assert not res.converged and res.passes[-1].code == _lm.MAX_STEPS
+    assert not res.converged and res.passes[-1].code == MAX_STEPS
     cal = to_calibration(res, obs)
     unc = cal.extra["uncertainty"]
     assert unc["converged"] is False and "not a minimum" in unc["status"] and "3 steps" in unc["status"]
@@ -527,7 +527,7 @@ def test_a_camera_alone_calibrates_from_its_corners_without_a_mirror(exact):
     pk = pack(obs)  # dots, spots and rim too: a camera-only rig cannot predict them
     p = _truth_params(truth, pk)
     with pytest.raises(ValueError, match="camera-only"):
-        _lm.residual_rows(_lm.Params(sj.Rig.camera_only(truth.rig.camera), p.poses, p.chess), pk)
+        residual_rows(Params(sj.Rig.camera_only(truth.rig.camera), p.poses, p.chess), pk)
 
 
 def test_a_solution_that_predicts_no_observation_is_refused(exact):
@@ -541,6 +541,6 @@ def test_a_solution_that_predicts_no_observation_is_refused(exact):
     no_chess = sj.Pose(jnp.zeros((0, 3, 3)), jnp.zeros((0, 3)))
     m = truth.rig.mirror
     away = sj.Rig(truth.rig.camera, type(m).create([0.0, 0.0, -500.0], m.axis, m.radius, m.height), truth.rig.lasers)
-    away_params = _lm.Params(away, poses, no_chess)
+    away_params = Params(away, poses, no_chess)
     with pytest.raises(sj.CalibrationError, match="predicts none of the observations"):
-        covariance_of(away_params, pk, _lm.make_masks(away_params), "huber", 1.0)
+        covariance_of(away_params, pk, make_masks(away_params), "huber", 1.0)

@@ -54,7 +54,9 @@ def test_a_rig_seen_through_its_mirror_only_calibrates(shape):
     mirror's lateral place trades off against its tilt and the principal point (a nearly central
     camera): its std says so (several mm), and what the calibration must get right is the
     pixels it predicts."""
-    from slcvjax.calibration.calibrate import calibrate, held_out_rms, report
+    from slcvjax.calibration.calibrate import calibrate
+    from slcvjax.calibration.model_selection import held_out_rms
+    from slcvjax.calibration.report import report
 
     mirror = ConicMirror.of_kind("hyperboloid", [0.5, -0.3, 40.0], [0.015, -0.01, 1.0], 15.0, 20.0, -2.0)
     obs_all, truth = _through_mirror_only(Rig(paper_camera(), mirror, None), n_views=12, seed=4)
@@ -89,7 +91,8 @@ def test_a_rig_seen_through_its_mirror_only_calibrates(shape):
 def test_the_linear_loss_leaves_no_outlier_out():
     """One dot moved 8 px: the robust fit leaves it out and says so, the plain least-squares fit
     (``loss="linear"``) keeps every dot and its residual shows the dot."""
-    from slcvjax.calibration.calibrate import calibrate, report
+    from slcvjax.calibration.calibrate import calibrate
+    from slcvjax.calibration.report import report
 
     mirror = ConicMirror.of_kind("hyperboloid", [0.5, -0.3, 40.0], [0.015, -0.01, 1.0], 15.0, 20.0, -2.0)
     obs, _ = _through_mirror_only(Rig(paper_camera(), mirror, None), n_views=6, seed=2)
@@ -141,8 +144,8 @@ def test_a_shape_without_dimensions_from_the_cli(tmp_path, capsys):
     import json
 
     from slcvjax import cli
+    from slcvjax.calibration.base import CalibrationError
     from slcvjax.calibration.central import GAUGE_VERTEX_RADIUS
-    from slcvjax.calibration.staged import CalibrationError
     from slcvjax.observations.formats import read_observations, write_observations
 
     mirror = ConicMirror.of_kind("hyperboloid", [0.5, -0.3, 40.0], [0.015, -0.01, 1.0], 15.0, 20.0, -2.0)
@@ -171,7 +174,9 @@ def test_a_sphere_seen_through_itself_only_holds_its_axis():
     """A sphere's vertex slides over it with its axis (only its centre is seen): seen through the
     mirror only, the axis is held (std 0), the fit is at the noise and 4 views it never saw are
     predicted at the noise with camera and mirror held."""
-    from slcvjax.calibration.calibrate import calibrate, held_out_rms, report
+    from slcvjax.calibration.calibrate import calibrate
+    from slcvjax.calibration.model_selection import held_out_rms
+    from slcvjax.calibration.report import report
 
     mirror = ConicMirror.of_kind("sphere", [0.5, -0.3, 40.0], [0.015, -0.01, 1.0], 25.0, 18.0)
     obs_all, _ = _through_mirror_only(Rig(paper_camera(), mirror, None), n_views=12, seed=5)
@@ -189,8 +194,8 @@ def test_a_sphere_seen_through_itself_only_holds_its_axis():
 @pytest.mark.slow
 def test_auto_needs_views_through_the_mirror_alone():
     """``mirror_shape.kind = "auto"`` with direct views, or with one view: a clear error."""
+    from slcvjax.calibration.base import CalibrationError
     from slcvjax.calibration.calibrate import calibrate
-    from slcvjax.calibration.staged import CalibrationError
     from slcvjax.observations.simulate import paper_rig
 
     obs, _ = simulate(box_scene(paper_rig(2), paper_views(2), n_chess_views=3), noise=0.0, seed=1)
@@ -223,7 +228,9 @@ def test_auto_picks_a_hyperboloid_by_held_out_views():
     the difference) within 5 %, which the report says it cannot tell apart where it is within two
     standard errors; the fit on every view finds the conic constant within 4 std.  (At 0.3 px
     the three fit the held-out views within 2 % of each other.)"""
-    from slcvjax.calibration.calibrate import AUTO_KINDS, calibrate, report
+    from slcvjax.calibration.calibrate import calibrate
+    from slcvjax.calibration.model_selection import AUTO_KINDS
+    from slcvjax.calibration.report import report
 
     mirror = ConicMirror.of_kind("hyperboloid", [0.5, -0.3, 40.0], [0.015, -0.01, 1.0], 15.0, 20.0, -2.5)
     obs, _ = _through_mirror_only(Rig(paper_camera(), mirror, None), n_views=8, noise=0.02, seed=6)
@@ -244,7 +251,8 @@ def test_an_estimate_that_closes_the_conic_writes_a_readable_file(tmp_path):
     """An ellipsoid (conic constant -0.6) calibrated as a hyperboloid of unknown shape: the estimate
     crosses to an ellipsoid within 4 std, and its calibration file reads back (the rim, which
     bounds nothing, inside the ellipsoid's widest circle)."""
-    from slcvjax.calibration.calibrate import calibrate, report, to_calibration
+    from slcvjax.calibration.calibrate import calibrate
+    from slcvjax.calibration.report import report, to_calibration
     from slcvjax.observations.formats import read_calibration, write_calibration
 
     mirror = ConicMirror.of_kind("ellipsoid", [0.5, -0.3, 40.0], [0.015, -0.01, 1.0], 15.0, 14.0, -0.6)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from slcvjax import cli
-from slcvjax.calibration.calibrate import laser_errors
+from slcvjax.calibration.bound import laser_errors
 from slcvjax.observations.formats import read_calibration, read_observations
 
 from ._helpers import on_true_lines

@@ -223,7 +223,8 @@ def test_conic_shapes_round_trip_through_the_files(tmp_path):
 @pytest.mark.slow
 def test_a_paraboloid_rig_calibrates_near_its_bound():
     """The whole pipeline (rim, PnP through the mirror, the joint passes) with a paraboloid."""
-    from slcvjax.calibration.calibrate import calibrate, cramer_rao, laser_errors
+    from slcvjax.calibration.bound import cramer_rao, laser_errors
+    from slcvjax.calibration.calibrate import calibrate
     from slcvjax.observations.simulate import box_scene, paper_views, simulate
 
     scene = box_scene(_conic_rig(), paper_views(10), n_chess_views=6)

@@ -26,7 +26,7 @@ def test_a_padded_plan_predicts_as_the_unpadded_one_and_another_size_compiles_no
     module's four-view plan, in the same buckets, compiles nothing."""
     views = paper_views(3)
     small = _design.Plan.from_scene(box_scene(paper_rig(3), views), views, noise=0.5)
-    padded, plain = _design._Compiled(small), _design._Compiled(small, pad=False)
+    padded, plain = _design.Compiled(small), _design.Compiled(small, pad=False)
     assert (padded.cap, plain.cap) == (4, 3)
     assert padded.chess.t.shape[0] > plain.chess.t.shape[0]  # the direct views padded too
     a, b = padded.predict(views), plain.predict(views)
@@ -40,7 +40,7 @@ def test_a_padded_plan_predicts_as_the_unpadded_one_and_another_size_compiles_no
     assert np.all(np.asarray(ga)[3:] == 0.0)  # the padded view moves nowhere
     _, p = plan
     with compilations() as compiled:
-        c = _design._Compiled(p)
+        c = _design.Compiled(p)
         pos, ang, _, _ = c.predict(p.views)
         c.value_and_grad(c.u_of(p.views), pos, ang, jnp.asarray(0.5))
     assert compiled == [], "\n".join(compiled)
@@ -63,7 +63,7 @@ def test_prediction_equals_the_bound_of_the_simulated_calibration(plan):
 @pytest.mark.slow
 def test_gradient_of_the_bound_matches_finite_differences(plan):
     _, p = plan
-    c = _design._Compiled(p)
+    c = _design.Compiled(p)
     u = c.u_of(p.views)
     pos, ang, _, _ = c.predict(c.scale * jnp.tanh(u))
     args = (pos, ang, jnp.asarray(0.5))

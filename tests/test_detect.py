@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from slcvjax.calibration.calibrate import cramer_rao, laser_errors
+from slcvjax.calibration.bound import cramer_rao, laser_errors
 from slcvjax.cli import main
 from slcvjax.geometry.mirror import project_through_mirror
 from slcvjax.geometry.rig import distance_to_rim, project_rim
@@ -20,7 +20,7 @@ from slcvjax.images.centroids import (
     detection_sizes,
     resolve_ambiguous_boards,
 )
-from slcvjax.images.detect import BoardLayout, _order_grid, detect_folder, read_setup
+from slcvjax.images.detect import BoardLayout, detect_folder, order_grid, read_setup
 from slcvjax.images.render import RenderOptions, render_scene
 from slcvjax.measurement.measure import disk_image_offset
 from slcvjax.observations.formats import FormatError
@@ -110,16 +110,16 @@ def test_a_missing_row_is_placed_only_on_evidence():
     az = np.radians([-10.0, 0.0, 10.0])
     px = np.array([[r * np.cos(a), r * np.sin(a)] for r in (75.0, 95.0) for a in az])
     centre = np.zeros(2)
-    placed = _order_grid(px, centre, layout, 200.0, probe=lambda az, r0, r1: False)
+    placed = order_grid(px, centre, layout, 200.0, probe=lambda az, r0, r1: False)
     # the inner row is the hidden one: the seen rows are grid rows 1 and 2
     np.testing.assert_array_equal(placed[1], np.r_[np.zeros(3, bool), np.ones(6, bool)])
     probed = []
-    got = _order_grid(px, centre, layout, 200.0, probe=lambda az, r0, r1: probed.append((r0, r1)) or True)
+    got = order_grid(px, centre, layout, 200.0, probe=lambda az, r0, r1: probed.append((r0, r1)) or True)
     assert isinstance(got, str) and "ambiguous rows" in got  # something dark where the outer row would be
     assert all(95.0 < r0 < r1 for r0, r1 in probed)  # looked beyond the outer row
     # both sides out of sight (a wide step reaching past the rim as well): never guessed
     wide = np.array([[r * np.cos(a), r * np.sin(a)] for r in (75.0, 160.0) for a in az])
-    got = _order_grid(wide, centre, layout, 200.0)
+    got = order_grid(wide, centre, layout, 200.0)
     assert isinstance(got, str) and "either neighbouring row" in got
 
 

@@ -9,7 +9,7 @@ import pytest
 
 from slcvjax.calibration import implicit as _implicit
 from slcvjax.calibration.calibrate import calibrate
-from slcvjax.calibration.lm import pad_problem
+from slcvjax.calibration.params import pad_problem
 from slcvjax.geometry.camera import undistort
 from slcvjax.geometry.mirror import solve_mirror_point
 from slcvjax.observations.simulate import make_scene, simulate
@@ -72,7 +72,7 @@ def test_newton_polish_reaches_a_stationary_point(solved):
     assert 1 <= steps <= 6
     # padded to its shape buckets as the library pads it: the polish's compiled linearisation
     _, p_pad, arr_pad, masks_pad = pad_problem(p0, arr, res.masks)
-    lin = _implicit._linearised(p_pad, arr_pad, masks_pad, res.loss, res.scale, None)
+    lin = _implicit.linearised(p_pad, arr_pad, masks_pad, res.loss, res.scale, None)
     assert float(jnp.max(jnp.abs(lin.step_g))) < 1e-9
 
 
@@ -80,10 +80,10 @@ def test_newton_polish_reaches_a_stationary_point(solved):
 def test_newton_from_the_lm_solution_compiles_its_linearisation_once(solved):
     # the LM's solution holds host arrays, Newton's steps give device arrays: one program for both
     res, arr, _, _ = solved
-    _implicit._LINEARISE[res.loss].clear()
+    _implicit.LINEARISE[res.loss].clear()
     _, steps = _implicit.stationary_point(res.params, arr, res.masks, res.loss, res.scale)
     assert steps >= 1
-    assert _implicit._LINEARISE[res.loss].signatures() == 1
+    assert _implicit.LINEARISE[res.loss].signatures() == 1
 
 
 @pytest.mark.slow
@@ -91,7 +91,7 @@ def test_the_sensitivity_of_other_sizes_compiles_no_linearisation(solved):
     # another dataset's numbers of lasers, views, dots and spots fall in the same shape buckets
     res, *_ = solved
     first = _implicit.sensitivity(res)
-    n = _implicit._LINEARISE[res.loss].signatures()
+    n = _implicit.LINEARISE[res.loss].signatures()
     obs, _ = simulate(make_scene("paper", n_lasers=3, n_views=6), noise=0.5, seed=4)
     other = calibrate(obs)
     assert other.packed.counts[0] != res.packed.counts[0] and other.rig.lasers.n != res.rig.lasers.n
@@ -100,7 +100,7 @@ def test_the_sensitivity_of_other_sizes_compiles_no_linearisation(solved):
     arr = other.packed.arrays()
     dg, dp = _implicit.solution_tangent(other.params, arr, other.masks, other.loss, other.scale, None, arr)
     assert dg.shape == (other.rig.tangent_dim,) and dp.shape == (other.params.n_blocks, 6)
-    assert _implicit._LINEARISE[res.loss].signatures() == n
+    assert _implicit.LINEARISE[res.loss].signatures() == n
     assert sens.glob.shape == (other.rig.tangent_dim, 2 * int(np.sum(other.packed.counts)))
     assert first.glob.shape == (res.rig.tangent_dim, 2 * int(np.sum(res.packed.counts)))
     assert np.all(np.isfinite(sens.glob))

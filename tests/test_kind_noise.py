@@ -4,8 +4,11 @@ import jax
 import numpy as np
 import pytest
 
-from slcvjax.calibration import lm
-from slcvjax.calibration.calibrate import calibrate, covariance_of, kind_noise, kind_sigmas
+from slcvjax.calibration.calibrate import calibrate
+from slcvjax.calibration.covariance import covariance_of, kind_noise, kind_sigmas, sandwich_covariance
+from slcvjax.calibration.linearise import Linearisation
+from slcvjax.calibration.params import Masks
+from slcvjax.calibration.schur import Normal, leverage_share, leverage_shares
 from slcvjax.geometry.rig import laser_columns
 from slcvjax.observations.simulate import make_scene, simulate
 
@@ -27,7 +30,7 @@ def _schur_problem(rng, n_rows=40):
     return jg, jp, block, dense
 
 
-def _normal(jg, jp, block, sel) -> lm.Normal:
+def _normal(jg, jp, block, sel) -> Normal:
     """The plain sums ``J^T J`` of the rows ``sel`` in Schur form."""
     A = jg[sel].T @ jg[sel]
     B = np.zeros((NB, G, 6))
@@ -35,7 +38,7 @@ def _normal(jg, jp, block, sel) -> lm.Normal:
     for i in np.flatnonzero(sel):
         B[block[i]] += np.outer(jg[i], jp[i])
         D[block[i]] += np.outer(jp[i], jp[i])
-    return lm.Normal(A, np.zeros(G), B, D, np.zeros((NB, 6)))
+    return Normal(A, np.zeros(G), B, D, np.zeros((NB, 6)))
 
 
 def test_leverage_share_is_the_trace_of_the_hat_matrix():
@@ -45,10 +48,10 @@ def test_leverage_share_is_the_trace_of_the_hat_matrix():
     full = _normal(jg, jp, block, every)
     hat = dense @ np.linalg.solve(dense.T @ dense, dense.T)
     part = rng.uniform(size=len(jg)) < 0.4
-    share = lm.leverage_share(full, _normal(jg, jp, block, part), np.ones(G), np.ones(NB))
+    share = leverage_share(full, _normal(jg, jp, block, part), np.ones(G), np.ones(NB))
     assert float(share) == pytest.approx(np.trace(hat[np.ix_(part, part)]), rel=1e-10)
     # over a partition of the rows the shares add up to the number of parameters
-    rest = lm.leverage_share(full, _normal(jg, jp, block, ~part), np.ones(G), np.ones(NB))
+    rest = leverage_share(full, _normal(jg, jp, block, ~part), np.ones(G), np.ones(NB))
     assert float(share + rest) == pytest.approx(G + 6 * NB, rel=1e-10)
 
 
@@ -60,7 +63,7 @@ def test_leverage_shares_of_stacked_parts_are_each_parts_trace():
     which = rng.integers(0, 3, len(jg))
     parts = [_normal(jg, jp, block, which == k) for k in range(3)]
     stacked = jax.tree_util.tree_map(lambda *a: np.stack(a), *parts)
-    shares = lm.leverage_shares(full, stacked, np.ones((3, G)), np.ones((3, NB)))
+    shares = leverage_shares(full, stacked, np.ones((3, G)), np.ones((3, NB)))
     for k in range(3):
         sel = which == k
         assert float(shares[k]) == pytest.approx(np.trace(hat[np.ix_(sel, sel)]), rel=1e-10)
@@ -74,8 +77,8 @@ def test_sandwich_covariance_is_the_dense_one():
     full = _normal(jg, jp, block, np.ones(len(jg), bool))
     parts = [_normal(jg, jp, block, kinds == k) for k in range(2)]
     meat = jax.tree_util.tree_map(lambda a, b: sig[0] ** 2 * a + sig[1] ** 2 * b, *parts)
-    lin = lm.Linearisation(full, None, np.ones(G), np.ones(NB), float(len(jg)), 1.0)
-    cov = lm.sandwich_covariance(lin, meat, lm.Masks(np.ones(G), np.ones(NB)))
+    lin = Linearisation(full, None, np.ones(G), np.ones(NB), float(len(jg)), 1.0)
+    cov = sandwich_covariance(lin, meat, Masks(np.ones(G), np.ones(NB)))
     Hinv = np.linalg.inv(dense.T @ dense)
     expected = Hinv @ (dense.T @ np.diag(sig[kinds] ** 2) @ dense) @ Hinv
     np.testing.assert_allclose(cov.glob, expected[:G, :G], rtol=1e-9, atol=1e-12)
@@ -83,9 +86,7 @@ def test_sandwich_covariance_is_the_dense_one():
         s = slice(G + 6 * b, G + 6 * b + 6)
         np.testing.assert_allclose(cov.blocks[b], expected[s, s], rtol=1e-9, atol=1e-12)
     # one noise for every row: sigma^2 H^-1
-    same = lm.sandwich_covariance(
-        lin, jax.tree_util.tree_map(lambda a: 4.0 * a, full), lm.Masks(np.ones(G), np.ones(NB))
-    )
+    same = sandwich_covariance(lin, jax.tree_util.tree_map(lambda a: 4.0 * a, full), Masks(np.ones(G), np.ones(NB)))
     np.testing.assert_allclose(same.glob, 4.0 * Hinv[:G, :G], rtol=1e-9)
 
 
@@ -125,8 +126,10 @@ def test_per_kind_bound_is_the_weighted_estimators():
     equal it is ``sigma^2 H^-1``; it scales as the sigmas squared; and by Gauss-Markov it lies
     below the covariance of the estimator that weighs every kind 1 (``H^-1 (sum_k sigma_k^2 N_k)
     H^-1``) in the Loewner order."""
-    from slcvjax.calibration.calibrate import _kind_linearisations, cramer_rao
-    from slcvjax.calibration.lm import Params, make_masks, pad_masks, raw_normal, sandwich_covariance
+    from slcvjax.calibration.bound import cramer_rao
+    from slcvjax.calibration.covariance import kind_linearisations, sandwich_covariance
+    from slcvjax.calibration.params import Params, make_masks, pad_masks
+    from slcvjax.calibration.schur import raw_normal
     from slcvjax.observations.problem import pack, stack_poses
 
     obs, truth = simulate(make_scene("paper", n_lasers=4, n_views=6))
@@ -144,7 +147,7 @@ def test_per_kind_bound_is_the_weighted_estimators():
     params = Params(truth.rig, stack_poses([truth.board_poses[v][b] for v, b in pk.pose_keys]),
                     stack_poses(truth.calibration_view_poses))  # fmt: skip
     masks = make_masks(params)
-    layout, full, parts = _kind_linearisations(params, pk, masks, "huber", 1e9)
+    layout, full, parts = kind_linearisations(params, pk, masks, "huber", 1e9)
     meat = None
     for p, s in zip(parts, sig, strict=True):
         raw = jax.tree_util.tree_map(lambda a, s=s: s**2 * a, raw_normal(p.normal, p.seen_glob, p.seen_blocks))

@@ -51,7 +51,7 @@ def test_predicted_diameter_std_matches_monte_carlo_pixel_noise_and_calibration_
     a = rng.normal(size=(g, g)) / np.sqrt(g)
     cov = (scale[:, None] * (a @ a.T + 0.5 * np.eye(g))) * scale[None, :]
     body = jnp.asarray([ld.BODY_RADIUS_MM, ld.BODY_GAP_MM])
-    prediction = jax.jit(ld._pipe_prediction)  # one program, not one per operation
+    prediction = jax.jit(ld.pipe_prediction)  # one program, not one per operation
 
     var_px, seen, *_ = prediction(rig, jnp.zeros((g, g)), sigma, d / 2, body)
     assert bool(np.all(seen))
@@ -88,7 +88,7 @@ def test_design_sees_every_spot_and_lowers_the_predicted_error(small):
 
 @pytest.mark.slow
 def test_gradient_of_the_relative_variance_matches_finite_differences(small):
-    c = ld._Compiled(small)
+    c = ld.Compiled(small)
     u = jnp.asarray(np.concatenate([np.full(c.n, -0.45), [0.0, 0.9]]))  # a mounting that sees every spot
     assert np.all(c.evaluate(u).seen)
     f, grad = c.value_and_grad(u)

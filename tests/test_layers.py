@@ -104,3 +104,88 @@ def test_no_import_cycles():
         if m not in state:
             visit(m, [m])
     assert not cycles, "\n".join(cycles)
+
+
+# the calibration package's modules, lowest first: a module imports only those before it
+CALIBRATION = [
+    "base",
+    "laser_fit",
+    "staged",
+    "central",
+    "params",
+    "residuals",
+    "schur",
+    "losses",
+    "linearise",
+    "lm",
+    "evaluate",
+    "chessboard",
+    "covariance",
+    "rigid",
+    "result",
+    "executors",
+    "trial",
+    "passes",
+    "board_starts",
+    "repairs",
+    "schedule",
+    "rigid_pass",
+    "bound",
+    "implicit",
+    "report",
+    "model_selection",
+    "calibrate",
+]
+
+
+def test_calibration_modules_are_layered():
+    graph = _imports()
+    mods = {m.split(".", 1)[1] for m in graph if m.startswith("calibration.")}
+    assert mods == set(CALIBRATION), sorted(mods ^ set(CALIBRATION))
+    rank = {m: i for i, m in enumerate(CALIBRATION)}
+    bad = [
+        f"calibration.{m} imports {d}"
+        for m in CALIBRATION
+        for d in graph[f"calibration.{m}"]
+        if d.startswith("calibration.") and rank[d.split(".", 1)[1]] >= rank[m]
+    ]
+    assert not bad, "\n".join(bad)
+
+
+def _private_uses(path: Path) -> list[str]:
+    """The private names (a leading underscore) ``path`` takes from another ``slcvjax`` module:
+    imported by name, or read as an attribute of an imported ``slcvjax`` module."""
+    tree = ast.parse(path.read_text())
+    in_package = PACKAGE in path.parents
+    out, modules = [], set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            ours = (node.module or "").split(".")[0] == "slcvjax" or (in_package and node.level >= 1)
+            if not ours:
+                continue
+            for a in node.names:
+                if a.name.startswith("_") and not a.name.startswith("__"):
+                    out.append(f"{path.name}:{node.lineno} imports {a.name}")
+                modules.add(a.asname or a.name)  # perhaps a module (`from slcvjax.x import y as z`)
+        elif isinstance(node, ast.Import):
+            for a in node.names:
+                if a.name.split(".")[0] == "slcvjax":
+                    modules.add(a.asname or a.name.split(".")[0])
+    for node in ast.walk(tree):
+        if (
+            isinstance(node, ast.Attribute)
+            and node.attr.startswith("_")
+            and not node.attr.startswith("__")
+            and isinstance(node.value, ast.Name)
+            and node.value.id in modules
+        ):
+            out.append(f"{path.name}:{node.lineno} reads {node.value.id}.{node.attr}")
+    return out
+
+
+def test_no_module_takes_another_modules_private_names():
+    """Neither the package nor the tests reach into a module's private names: what another
+    module uses is public (the package's layering test then sees every dependency)."""
+    files = list(PACKAGE.rglob("*.py")) + list(Path(__file__).parent.glob("*.py"))
+    bad = [u for p in files for u in _private_uses(p)]
+    assert not bad, "\n".join(bad)

@@ -6,17 +6,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from slcvjax.calibration.calibrate import _solve
-from slcvjax.calibration.lm import (
-    CONVERGED,
-    MAX_STEPS,
-    Params,
-    loss_index,
-    make_masks,
-    pad_params,
-    pad_problem,
-    robust_cost,
-)
+from slcvjax.calibration.evaluate import solve_compiled
+from slcvjax.calibration.lm import CONVERGED, MAX_STEPS
+from slcvjax.calibration.losses import loss_index, robust_cost
+from slcvjax.calibration.params import Params, make_masks, pad_params, pad_problem
 from slcvjax.observations.problem import pack, stack_poses
 from slcvjax.observations.simulate import box_scene, paper_rig, paper_views, simulate
 
@@ -69,7 +62,7 @@ def problem():
 @pytest.mark.slow
 def test_converged_at_the_truth(problem):
     params, arr, masks, layout = problem
-    res = _solve(pad_params(layout, params), arr, masks, "linear", 1.0, 50)
+    res = solve_compiled(pad_params(layout, params), arr, masks, "linear", 1.0, 50)
     assert int(res.result) == CONVERGED
     assert float(res.cost) < 1e-16 and int(res.steps) <= 3
 
@@ -77,10 +70,10 @@ def test_converged_at_the_truth(problem):
 def test_max_steps_when_stopped_early(problem):
     params, arr, masks, layout = problem
     start = _off_intrinsics(params)
-    res = _solve(pad_params(layout, start), arr, masks, "huber", 1.0, 1)
+    res = solve_compiled(pad_params(layout, start), arr, masks, "huber", 1.0, 1)
     assert int(res.result) == MAX_STEPS and int(res.steps) == 1
     assert float(res.cost) < float(res.initial_cost)
-    full = _solve(pad_params(layout, start), arr, masks, "huber", 1.0, 100)
+    full = solve_compiled(pad_params(layout, start), arr, masks, "huber", 1.0, 100)
     assert int(full.result) == CONVERGED and float(full.cost) < 1e-12 * float(full.initial_cost)
 
 
@@ -90,11 +83,11 @@ def test_a_solve_stops_within_its_tolerance_of_the_minimum():
     params, arr, masks, layout = _box_problem(noise=0.5, seed=3)
     start = pad_params(layout, _off_intrinsics(params))
     rtol = 1e-10
-    res = _solve(start, arr, masks, "huber", 1.5, 100, rtol)
+    res = solve_compiled(start, arr, masks, "huber", 1.5, 100, rtol)
     assert int(res.result) == CONVERGED and int(res.steps) >= 1
     # from the same start (each solve holds the rim rows' normalisation at its start's), on until
     # a step changes nothing
-    further = _solve(start, arr, masks, "huber", 1.5, 100, 0.0)
+    further = solve_compiled(start, arr, masks, "huber", 1.5, 100, 0.0)
     assert int(further.steps) > int(res.steps)
     assert float(further.cost) <= float(res.cost)
     assert float(res.cost) - float(further.cost) <= rtol * float(res.cost)

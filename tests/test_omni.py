@@ -127,7 +127,7 @@ def test_omni_calibrates_from_the_images(images, tmp_path):
     residual at the corners' error, the camera, the mirror's vertex and conic constant within 4
     reported std of the truth, the ninth image's corners predicted
     within 0.3 px with camera and mirror held; the calibration file and its residual plot written."""
-    from slcvjax.calibration.calibrate import held_out_rms
+    from slcvjax.calibration.model_selection import held_out_rms
     from slcvjax.cli import main
     from slcvjax.experiments.omni import omni_observations
     from slcvjax.observations.formats import read_calibration

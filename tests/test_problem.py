@@ -94,33 +94,34 @@ def _rel(a, b):
 def test_padded_problem_solves_as_the_unpadded_one():
     """Padding in every array (dots, spots, rim, corners, board and direct-view poses, lasers) is
     masked out exactly: the same steps, cost, parameters, covariance and residual table."""
-    from slcvjax.calibration import lm as _lm
-    from slcvjax.calibration.calibrate import _covariance_of_linearisation, _solve
+    from slcvjax.calibration.covariance import covariance_compiled
+    from slcvjax.calibration.evaluate import solve_compiled
+    from slcvjax.calibration.params import Params, make_masks, pad_masks, pad_params, unpad_params
 
     # the sizes of test_calibrate's scene, so that the padded solve (in its bucket) shares its compilation
     obs, truth = simulate(make_scene("paper", n_lasers=4, n_views=5), noise=0.5, seed=3)
     pk = pack(obs)
     poses = stack_poses([truth.board_poses[v][b] for v, b in pk.pose_keys])
     chess = stack_poses([truth.calibration_view_poses[c] for c in pk.chess_keys])
-    p_true = _lm.Params(truth.rig, poses, chess)
+    p_true = Params(truth.rig, poses, chess)
     rng = np.random.default_rng(0)
     start = p_true.retract(
         jnp.asarray(rng.normal(0, 1e-3, p_true.n_global)), jnp.asarray(rng.normal(0, 1e-3, (p_true.n_blocks, 6)))
     )
-    masks = _lm.make_masks(start, {"chess_poses"})
+    masks = make_masks(start, {"chess_poses"})
     padded = Layout.of(pk, n_lasers=obs.n_lasers)
     exact = padded._replace(cap=padded.n, lasers=(obs.n_lasers,) * 2)  # no padding at all
     assert all(c > n for c, n in zip(padded.cap, padded.n, strict=True)) and padded.lasers[1] > padded.lasers[0]
     out = []
     for lay in (exact, padded):
-        p, a, m = _lm.pad_params(lay, start), lay.pad_packed(pk), _lm.pad_masks(lay, masks)
-        res = _solve(p, a, m, loss="huber", scale=1.5, max_steps=100, rtol=1e-10)
-        cov = _covariance_of_linearisation(res.linearisation, m, None)
+        p, a, m = pad_params(lay, start), lay.pad_packed(pk), pad_masks(lay, masks)
+        res = solve_compiled(p, a, m, loss="huber", scale=1.5, max_steps=100, rtol=1e-10)
+        cov = covariance_compiled(res.linearisation, m, None)
         out.append((lay, res, cov))
     (le, re, ce), (lp, rp, cp) = out
     assert int(re.steps) == int(rp.steps) and int(re.result) == int(rp.result)
     assert float(rp.cost) == pytest.approx(float(re.cost), rel=1e-9)
-    pe, pp = _lm.unpad_params(le, re.params), _lm.unpad_params(lp, rp.params)
+    pe, pp = unpad_params(le, re.params), unpad_params(lp, rp.params)
     for a, b in zip(jax.tree_util.tree_leaves(pp), jax.tree_util.tree_leaves(pe), strict=True):
         assert _rel(a, b) < 1e-9
     assert np.shape(cp.glob)[0] > np.shape(ce.glob)[0]

@@ -65,7 +65,8 @@ def test_vmrimage_fits_below_ocamcalibs_published_rms():
     own sub-pixel corners: a train RMS below its published 0.386 px."""
     import dataclasses
 
-    from slcvjax.calibration.calibrate import calibrate, report
+    from slcvjax.calibration.calibrate import calibrate
+    from slcvjax.calibration.report import report
 
     _need(OCAM["VMRImage"])
     obs, rec = ocam_observations(OCAM["VMRImage"], "2")
@@ -104,7 +105,8 @@ def test_mei_from_its_images_fits_below_omnidirs_rms():
     """The 8 views OpenCV omnidir kept, their corners detected here, the default through-mirror
     fit (a hyperboloid, its shape estimated, plain least squares): train RMS below omnidir's
     0.3564 px (SOURCE.md)."""
-    from slcvjax.calibration.calibrate import calibrate, report
+    from slcvjax.calibration.calibrate import calibrate
+    from slcvjax.calibration.report import report
     from slcvjax.experiments.omni import omni_observations
 
     _need(MEI)

@@ -43,7 +43,7 @@ def _every_sample_ray(cam, centres, offsets, R, t, grid):
     """The edge cells' means with each sample's own ray (a Newton undistortion per sample)."""
 
     def f(uv):
-        return render._chess_sample(*pixel_to_ray(cam, uv), R, t, grid[0], grid[1], grid[2])
+        return render.chess_sample(*pixel_to_ray(cam, uv), R, t, grid[0], grid[1], grid[2])
 
     return jax.vmap(jax.vmap(f))(centres[:, None, :] + offsets[None]).mean(axis=1)
 
@@ -52,7 +52,7 @@ def test_a_direct_view_with_the_undistortion_linearised_per_cell_is_the_exact_on
     # a camera of stronger distortion and wider view than the preset's, so the board reaches far out
     cam = Camera.create(300.0, 305.0, 322.0, 236.0, [-0.36, 0.14, 0.002, -0.0015, -0.02], 640, 480)
     scene = make_scene("paper", n_views=2)
-    cols, rows = render._grid_shape(scene.boards[scene.chess_board])
+    cols, rows = render.grid_shape(scene.boards[scene.chess_board])
     square = float(scene.boards[scene.chess_board][1, 0] - scene.boards[scene.chess_board][0, 0])
     renderer = Renderer(cam, None, RenderOptions(noise=0.0))
     poses = scene.chess_poses[:2]

@@ -8,16 +8,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from slcvjax.calibration.calibrate import (
-    _covariance_of_linearisation,
-    _linearisation,
-    calibrate,
-    cramer_rao,
-    laser_errors,
-)
-from slcvjax.calibration.lm import Params, make_masks, pad_masks
+from slcvjax.calibration.base import CalibrationError
+from slcvjax.calibration.bound import cramer_rao, laser_errors
+from slcvjax.calibration.calibrate import calibrate
+from slcvjax.calibration.covariance import covariance_compiled
+from slcvjax.calibration.evaluate import linearisation_at
+from slcvjax.calibration.params import Params, make_masks, pad_masks
 from slcvjax.calibration.rigid import board_pose_covariances, board_poses_of, box_model, rigid_masks, rigid_params
-from slcvjax.calibration.staged import CalibrationError
 from slcvjax.cli import main
 from slcvjax.geometry.pose import Pose, so3_log
 from slcvjax.observations.formats import read_observations
@@ -81,10 +78,10 @@ def _chain(model, rigid: Params, pk) -> np.ndarray:
 @pytest.mark.slow
 def test_rigid_normal_equations_are_the_free_ones_by_the_chain_rule(small):
     obs, truth, pk, free, model, rigid = small
-    lay_f, lin_f = _linearisation(free, pk, make_masks(free), "linear", 1.0)
+    lay_f, lin_f = linearisation_at(free, pk, make_masks(free), "linear", 1.0)
     masks_r = rigid_masks(model, make_masks(free), pk.n_poses)
     pk_r = model.packed(pk)
-    lay_r, lin_r = _linearisation(rigid, pk_r, masks_r, "linear", 1.0)
+    lay_r, lin_r = linearisation_at(rigid, pk_r, masks_r, "linear", 1.0)
     g = truth.rig.tangent_dim
     H_f, b_f = _dense(lin_f, lay_f, g)
     H_r, b_r = _dense(lin_r, lay_r, g + 6 * len(model.boards))
@@ -94,7 +91,7 @@ def test_rigid_normal_equations_are_the_free_ones_by_the_chain_rule(small):
     np.testing.assert_allclose(b_r, M.T @ b_f, atol=1e-9 * np.abs(b_r).max())
     # every board pose's covariance in the rigid model: the chain rule through the dense inverse
     sigma = 0.3
-    cov = _covariance_of_linearisation(lin_r, pad_masks(lay_r, masks_r), jnp.asarray(sigma))
+    cov = covariance_compiled(lin_r, pad_masks(lay_r, masks_r), jnp.asarray(sigma))
     cov = cov._replace(blocks=lay_r.unpad_blocks(cov.blocks))
     full = sigma**2 * np.linalg.inv(H_r)
     pose_cov = board_pose_covariances(model, rigid, lin_r, masks_r, cov, lay_r)
@@ -193,7 +190,8 @@ def test_the_box_judges_again_the_spots_the_free_solve_relabelled(small):
     a label that was wrong in the input stays corrected."""
     import dataclasses
 
-    from slcvjax.calibration.calibrate import _per_observation, _rigid_refine
+    from slcvjax.calibration.evaluate import per_observation
+    from slcvjax.calibration.rigid_pass import rigid_refine
     from slcvjax.observations.formats import SpotObs
 
     obs, *_ = small
@@ -223,7 +221,7 @@ def test_the_box_judges_again_the_spots_the_free_solve_relabelled(small):
     handed = dataclasses.replace(
         free, packed=free.packed.select(np.ones(n_d, bool), np.ones(n_s, bool), labels), repairs=[*free.repairs, record]
     )
-    res = _rigid_refine(handed, wrong, list(obs.extra["rigid_boards"]), 500)
+    res = rigid_refine(handed, wrong, list(obs.extra["rigid_boards"]), 500)
     restored = {(r["view"], r["index"]) for r in res.box["spots_restored"]}
     assert (obs.views[v].name, j) in restored, (res.box["spots_restored"], free.repairs)
     # each spot restored was changed by the free solve and had its true label in the input
@@ -240,5 +238,5 @@ def test_the_box_judges_again_the_spots_the_free_solve_relabelled(small):
     assert got[(v, j)] == own
     assert got[(v_bad, 0)] == true_laser  # the input's wrong label is not brought back
     # and every spot used fits the box at the noise
-    norm, kind, ok = _per_observation(res.params, res.packed)
+    norm, kind, ok = per_observation(res.params, res.packed)
     assert np.all(norm[(kind == 1) & ok] < 5 * 0.3 * 2.5)

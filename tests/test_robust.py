@@ -6,8 +6,12 @@ import json
 import numpy as np
 import pytest
 
-from slcvjax.calibration.calibrate import calibrate, cramer_rao, laser_errors, laser_std, report, require_determined
-from slcvjax.calibration.staged import CalibrationError, fit_lasers
+from slcvjax.calibration.base import CalibrationError
+from slcvjax.calibration.bound import cramer_rao, laser_errors, laser_std
+from slcvjax.calibration.calibrate import calibrate
+from slcvjax.calibration.laser_fit import fit_lasers
+from slcvjax.calibration.report import report
+from slcvjax.calibration.result import require_determined
 from slcvjax.geometry.rig import laser_columns
 from slcvjax.observations.problem import pack
 from slcvjax.observations.simulate import make_scene, simulate

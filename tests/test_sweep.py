@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from slcvjax.calibration.calibrate import cramer_rao, laser_std
+from slcvjax.calibration.bound import cramer_rao, laser_std
 from slcvjax.cli import main
 from slcvjax.experiments.sweep import COMPONENTS, laser_component_std, run_sweep, write_sweep
 from slcvjax.observations.simulate import make_scene, simulate

@@ -162,7 +162,9 @@ def test_a_telecentric_rig_calibrates_through_its_mirror(shape):
     about 5 reported std off: in so flat a valley the first-order std understate them, and the
     focal length's std is what says the data do not determine this camera.)  Both predict 4
     unseen views at the noise."""
-    from slcvjax.calibration.calibrate import calibrate, held_out_rms, report
+    from slcvjax.calibration.calibrate import calibrate
+    from slcvjax.calibration.model_selection import held_out_rms
+    from slcvjax.calibration.report import report
 
     conic = -1.0 if shape == "paraboloid" else -1.6
     mirror = ConicMirror.create([0.6, -0.4, 60.0], [0.012, -0.008, 1.0], 1.0 / 20.0, conic, 32.0)
@@ -196,8 +198,8 @@ def test_a_telecentric_rig_calibrates_through_its_mirror(shape):
 
 def test_a_telecentric_camera_needs_a_conic_mirror_seen_through():
     """Direct views (OpenCV's pinhole calibration) cannot start a telecentric camera: a clear error."""
+    from slcvjax.calibration.base import CalibrationError
     from slcvjax.calibration.calibrate import calibrate
-    from slcvjax.calibration.staged import CalibrationError
     from slcvjax.observations.simulate import paper_rig
 
     obs, _ = simulate(box_scene(paper_rig(2), paper_views(2), n_chess_views=3), noise=0.0, seed=1)
@@ -213,7 +215,7 @@ def test_the_perspective_test_is_an_f_test():
 
     from scipy.stats import f as f_dist
 
-    from slcvjax.calibration.calibrate import perspective_test
+    from slcvjax.calibration.model_selection import perspective_test
 
     def fit(sigma, dof):
         return SimpleNamespace(cov=SimpleNamespace(sigma=np.float64(sigma), dof=np.int64(dof)))
@@ -259,8 +261,8 @@ def test_auto_keeps_the_perspective_only_where_the_views_need_it():
 
 def test_auto_projection_needs_views_through_a_conic_mirror():
     """``camera_projection = "auto"`` with direct views (or a cone): a clear error, naming the field."""
+    from slcvjax.calibration.base import CalibrationError
     from slcvjax.calibration.calibrate import calibrate
-    from slcvjax.calibration.staged import CalibrationError
     from slcvjax.observations.simulate import paper_rig
 
     obs, _ = simulate(box_scene(paper_rig(2), paper_views(2), n_chess_views=3), noise=0.0, seed=1)

@@ -32,7 +32,8 @@ import numpy as np
 from ..geometry.camera import Camera
 from ..geometry.conic import ConicMirror
 from ..observations.problem import Packed
-from .staged import CalibrationError, StageReport, board_poses
+from .base import CalibrationError, StageReport
+from .staged import board_poses
 
 GAUGE_VERTEX_RADIUS = 20.0  # mm: the scale where the shape's vertex radius is not given
 ECCENTRICITIES = (1.005, 1.02, 1.06, 1.15, 1.3, 1.55, 2.0, 3.0)
@@ -81,7 +82,7 @@ def central_start(
         telecentric: the camera is telecentric (see the module docstring).
 
     Returns per start the camera, the mirror and the stage's report (the first-order RMS of the
-    boards' fit).  Raises :class:`slcvjax.calibration.staged.CalibrationError` where no candidate poses every board.
+    boards' fit).  Raises :class:`slcvjax.calibration.base.CalibrationError` where no candidate poses every board.
     """
     if kind not in ("hyperboloid", "paraboloid", "sphere", "ellipsoid"):
         raise ValueError(f"central_start: no start for a {kind} mirror")

@@ -18,7 +18,8 @@ from ..geometry.pose import Pose
 from ..geometry.rig import Rig
 from ..observations.formats import CalibrationViewObs, Observations
 from ..observations.problem import Layout, pack, stack_poses, unstack_poses
-from .staged import CalibrationError, calibrate_intrinsics
+from .base import CalibrationError
+from .staged import calibrate_intrinsics
 
 
 def board_points(cols: int, rows: int, square: float) -> np.ndarray:
@@ -96,8 +97,8 @@ def calibrate_from_corners(
     names: list[str], corners: list[np.ndarray], points: np.ndarray, size: tuple[int, int]
 ) -> CameraCalibration:
     """Calibrate from detected corners: OpenCV's start, then the joint LM on the corners alone."""
-    from .calibrate import _per_observation, _solve
-    from .lm import Params, make_masks, pad_masks, pad_params, unpad_params
+    from .evaluate import per_observation, solve_compiled
+    from .params import Params, make_masks, pad_masks, pad_params, unpad_params
 
     views = [
         CalibrationViewObs(n, "chess", c, np.ones(len(c), dtype=bool)) for n, c in zip(names, corners, strict=True)
@@ -109,7 +110,7 @@ def calibrate_from_corners(
     params = Params(Rig.camera_only(cam0), no_poses, stack_poses([poses0[i] for i in pk.chess_keys]))
     masks = make_masks(params, {"mirror"})
     layout = Layout.of(pk)
-    res = _solve(
+    res = solve_compiled(
         pad_params(layout, params),
         layout.pad_packed(pk),
         pad_masks(layout, masks),
@@ -118,7 +119,7 @@ def calibrate_from_corners(
         max_steps=100,
     )
     params = unpad_params(layout, res.params)
-    norm, _, _ = _per_observation(params, pk)
+    norm, _, _ = per_observation(params, pk)
     per_pt = norm**2
     view_of = np.asarray(pk.chess_pose)
     per_view = {names[pk.chess_keys[k]]: float(np.sqrt(np.mean(per_pt[view_of == k]))) for k in range(pk.n_chess)}

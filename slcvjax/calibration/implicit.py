@@ -40,8 +40,10 @@ from jaxtyping import Array, Float
 from ..geometry.rig import laser_columns
 from ..observations.problem import Kind, Layout, Packed, kind_weights, map_rows
 from ..support.persist import PersistentJit
-from . import lm as _lm
-from .lm import N_CAM, N_CM, N_LAS, Masks, Params, pad_problem, unpad_params
+from .losses import LOSSES, robust_cost
+from .params import N_CAM, N_CM, N_LAS, Masks, Params, pad_problem, unpad_params
+from .residuals import camera_mirror, chess_residual, dot_residual, rim_scale, rim_value, spot_residual
+from .schur import schur_solve
 
 N_G = N_CM + N_LAS  # the global part of an observation's local parameters (padded)
 DATA_FIELDS = ("dot_pixels", "spot_pixels", "rim_pixels", "chess_pixels", "dot_points", "chess_points")
@@ -49,9 +51,9 @@ DATA_FIELDS = ("dot_pixels", "spot_pixels", "rim_pixels", "chess_pixels", "dot_p
 
 def _rho(r, k, robust: bool, loss: str, c):
     """The LM's per-observation cost of residual ``r`` with kind weight ``k``
-    (see ``slcvjax.calibration.lm.robust_observations``)."""
+    (see ``slcvjax.calibration.losses.robust_observations``)."""
     sq = k * jnp.sum(r**2)
-    return _lm.robust_cost(sq, loss, c)[0] if robust else 0.5 * sq
+    return robust_cost(sq, loss, c)[0] if robust else 0.5 * sq
 
 
 class _Blocks(NamedTuple):
@@ -104,12 +106,12 @@ def _observation_blocks(params: Params, pk: Packed, loss: str, scale, kind_weigh
         # last pass's movement); the gradient below holds it at the current estimate, and its
         # derivative then follows |dF/duv| exactly
         z, px = v[:N_L], v[N_L : N_L + 2]
-        c0, m0 = _lm._cm(cam, mir, z)
-        s = _lm.rim_scale(c0, m0, px)
+        c0, m0 = camera_mirror(cam, mir, z)
+        s = rim_scale(c0, m0, px)
 
         def cost(z2):
-            c2, m2 = _lm._cm(cam, mir, z2)
-            val, ok = _lm.rim_value(c2, m2, px)
+            c2, m2 = camera_mirror(cam, mir, z2)
+            val, ok = rim_value(c2, m2, px)
             return jnp.where(ok & (s > 0.0), 0.5 * kw[Kind.RIM] * (val / s) ** 2, 0.0)
 
         return jax.grad(cost)(z)
@@ -137,13 +139,15 @@ def _observation_blocks(params: Params, pk: Packed, loss: str, scale, kind_weigh
 
     out = []
     # dots: [camera, mirror | pose], data [pixel | board point]
-    f = residual_grad(lambda d, R, t, xb, px: _lm._dot(d, cam, mir, R, t, xb, px), Kind.DOT, N_CM, True, True)
+    f = residual_grad(lambda d, R, t, xb, px: dot_residual(d, cam, mir, R, t, xb, px), Kind.DOT, N_CM, True, True)
     rows = jnp.concatenate([pk.dot_pixels, pk.dot_points, idx(pk.dot_pose)], axis=1)
     gr, h, m = blocks(posed(f), pk.counts[Kind.DOT], rows, params.poses.R, params.poses.t)
     n = rows.shape[0]
     out.append((gr, h, m, jnp.broadcast_to(jnp.concatenate([cm, none]), (n, N_G)), pk.dot_pose))
     # spots: [camera, mirror, laser | pose], data [pixel | (none)]
-    f = residual_grad(lambda d, lp, ld, R, t, px: _lm._spot(d, cam, mir, lp, ld, R, t, px), Kind.SPOT, N_G, True, False)
+    f = residual_grad(
+        lambda d, lp, ld, R, t, px: spot_residual(d, cam, mir, lp, ld, R, t, px), Kind.SPOT, N_G, True, False
+    )
     n = pk.spot_pixels.shape[0]
     rows = jnp.concatenate([pk.spot_pixels, jnp.zeros((n, 3)), idx(pk.spot_laser), idx(pk.spot_pose)], axis=1)
 
@@ -161,7 +165,7 @@ def _observation_blocks(params: Params, pk: Packed, loss: str, scale, kind_weigh
     gr, h, m = blocks(lambda r: _second_order(rim_grad)(r), pk.counts[Kind.RIM], rows)
     out.append((gr, h, m, jnp.broadcast_to(jnp.concatenate([cm, none]), (n, N_G)), jnp.full(n, nb)))
     # chessboard corners: [camera | direct-view pose], data [pixel | board point]
-    f = residual_grad(lambda d, R, t, xb, px: _lm._chess(d, cam, R, t, xb, px), Kind.CHESS, N_CAM, True, True)
+    f = residual_grad(lambda d, R, t, xb, px: chess_residual(d, cam, R, t, xb, px), Kind.CHESS, N_CAM, True, True)
     rows = jnp.concatenate([pk.chess_pixels, pk.chess_points, idx(pk.chess_pose)], axis=1)
     gr, h, m = blocks(posed(f), pk.counts[Kind.CHESS], rows, params.chess.R, params.chess.t)
     n = rows.shape[0]
@@ -192,8 +196,8 @@ def _assemble(bl: _Blocks, g: int, nb: int, masks: Masks) -> _Hessian:
 
 
 def _schur_solve(hs: _Hessian, rg, rp):
-    """Solve ``H x = r`` for ``r = (rg (G, k), rp (NB, 6, k))`` (:func:`slcvjax.calibration.lm.schur_solve`)."""
-    return _lm.schur_solve(hs.A, hs.B, hs.D, rg, rp)
+    """Solve ``H x = r`` for ``r = (rg (G, k), rp (NB, 6, k))`` (:func:`slcvjax.calibration.schur.schur_solve`)."""
+    return schur_solve(hs.A, hs.B, hs.D, rg, rp)
 
 
 def _data_tangent(pk: Packed, dpk, layout: Layout) -> Float[Array, "n 5"]:
@@ -256,13 +260,13 @@ def _linearise_with(loss: str):
 
 # per loss, :func:`_linearise` compiled and its traced program kept on disk (a new process traced
 # it for 5 s before it could load the compilation)
-_LINEARISE = {loss: PersistentJit(_linearise_with(loss), f"implicit_linearise_{loss}") for loss in _lm.LOSSES}
+LINEARISE = {loss: PersistentJit(_linearise_with(loss), f"implicit_linearise_{loss}") for loss in LOSSES}
 
 
-def _linearised(params: Params, pk: Packed, masks: Masks, loss: str, scale, kind_weight) -> _Linearised:
+def linearised(params: Params, pk: Packed, masks: Masks, loss: str, scale, kind_weight) -> _Linearised:
     """:func:`_linearise` compiled (its arguments committed to the device: a solution straight from
     the LM holds host arrays, a Newton step's result device arrays, one program for both)."""
-    return _LINEARISE[loss](params, pk, masks, jnp.asarray(scale, dtype=float), kind_weights(kind_weight))
+    return LINEARISE[loss](params, pk, masks, jnp.asarray(scale, dtype=float), kind_weights(kind_weight))
 
 
 def _tangent(lin: _Linearised, masks: Masks, dy: Float[Array, "n 5"]):
@@ -286,11 +290,11 @@ def solution_tangent(
     exact to the last digits polish it first with :func:`stationary_point`).  ``dpk``
     holds tangents of the fields in :data:`DATA_FIELDS` (a :class:`Packed` of tangents,
     or any object with some of these attributes; missing ones count as zero).  The problem is
-    padded to its shape buckets (:func:`slcvjax.calibration.lm.pad_problem`): every dataset of
+    padded to its shape buckets (:func:`slcvjax.calibration.params.pad_problem`): every dataset of
     a bucket shares the compiled linearisation.
     """
     layout, padded, ppk, pmasks = pad_problem(params, pk, masks)
-    lin = _linearised(padded, ppk, pmasks, loss, scale, kind_weight)
+    lin = linearised(padded, ppk, pmasks, loss, scale, kind_weight)
     dg, dp = _tangent_jit(lin, pmasks, _data_tangent(pk, dpk, layout))
     return dg[layout.glob_index(dg.shape[0])], dp[layout.block_index()]
 
@@ -347,7 +351,7 @@ def _newton(params: Params, pk: Packed, masks: Masks, loss: str, scale, kind_wei
     layout, params, pk, masks = pad_problem(params, pk, masks)
     last = np.inf
     for k in range(max_steps + 1):
-        lin = _linearised(params, pk, masks, loss, scale, kind_weight)
+        lin = linearised(params, pk, masks, loss, scale, kind_weight)
         if k == max_steps:
             break
         size = float(jnp.maximum(jnp.max(jnp.abs(lin.step_g)), jnp.max(jnp.abs(lin.step_p), initial=0.0)))
@@ -386,8 +390,8 @@ def differentiable_solution(
     ``jax.jvp``, ``jax.jacfwd``).  Derivatives with respect to ``params`` itself are not
     defined (it is held constant).
     """
-    if loss not in _lm.LOSSES:
-        raise ValueError(f"unknown loss {loss!r} (known: {', '.join(_lm.LOSSES)})")
+    if loss not in LOSSES:
+        raise ValueError(f"unknown loss {loss!r} (known: {', '.join(LOSSES)})")
     return _pinned(params, pk, masks, loss, jnp.asarray(scale, dtype=float), kind_weights(kind_weight))
 
 
@@ -440,7 +444,7 @@ def sensitivity(result, x_ref: np.ndarray | None = None) -> Sensitivity:
     pixel's two columns are its derivative along u and v (only the component across the
     rim acts).
     """
-    from .calibrate import laser_working_points
+    from .bound import laser_working_points
 
     pk = result.packed
     arr = pk.arrays()

@@ -26,8 +26,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry.pose import Pose
+from ..observations.formats import Observations
 from ..observations.problem import Layout, Packed, bucket, stack_poses
-from .lm import Covariance, Masks, Params, pad_masks, schur_inverse
+from .base import CalibrationError
+from .covariance import Covariance
+from .params import Masks, Params, pad_masks
+from .schur import schur_inverse
 
 MISFIT_SIGMAS = 5.0  # a board pose whose dots' median residual exceeds this many noise sigmas ...
 MISFIT_MIN_PX = 2.0  # ... and this many pixels does not fit the box
@@ -70,7 +74,7 @@ class BoxModel:
 
 def box_model(pk: Packed, group, usable=None) -> BoxModel:
     """The rigid box model of ``pk``'s board poses for the board names ``group`` (known boards:
-    ``slcvjax.calibration.calibrate.rigid_group`` checks the names).
+    ``slcvjax.calibration.rigid.rigid_group`` checks the names).
 
     ``usable``: the board poses (indices into ``pose_keys``) with observations to place them
     (by default all); the others keep their own pose block, which nothing moves.
@@ -176,7 +180,8 @@ def box_start(model: BoxModel, keys, poses: list[Pose]) -> tuple[dict[int, Pose]
 
 
 def rigid_params(model: BoxModel, keys, poses: list[Pose], rig, chess: Pose) -> Params:
-    """The rigid model's :class:`slcvjax.calibration.lm.Params` started from free board poses (:func:`box_start`)."""
+    """The rigid model's :class:`slcvjax.calibration.params.Params` started from free board poses
+    (:func:`box_start`)."""
     cams, box = box_start(model, keys, poses)
     blocks = [cams[v] for v in model.views] + [_host(poses[k]) for k in model.outside]
     box_list = [box[b] for b in model.boards] + [Pose(np.eye(3), np.zeros(3))] * (model.n_box - len(model.boards))
@@ -259,3 +264,23 @@ def box_pose_std(params: Params, cov_glob: np.ndarray, model: BoxModel) -> dict[
         sd = np.sqrt(np.where(v > 0, v, np.nan))
         out[b] = {"rotation_deg": np.degrees(sd[:3]).tolist(), "translation_mm": sd[3:].tolist()}
     return out
+
+
+def rigid_group(obs: Observations, rigid: "bool | list[str]") -> list[str]:
+    """The board names of the rigid box model for ``calibrate(rigid=...)``: none where ``rigid``
+    is False, the observations' ``rigid_boards`` where True, else ``rigid`` itself."""
+    if rigid is False or rigid is None:
+        return []
+    if rigid is True:
+        group = list(obs.extra.get("rigid_boards") or [])
+        if not group:
+            raise CalibrationError(
+                "rigid: the observations declare no rigid_boards (name the boards fixed in one box, "
+                'e.g. "rigid_boards": ["wall0", "wall1"], or pass their names)'
+            )
+    else:
+        group = list(rigid)
+    for i, b in enumerate(group):
+        if b not in obs.boards:
+            raise CalibrationError(f"rigid_boards[{i}]: unknown board {b!r} (known: {', '.join(sorted(obs.boards))})")
+    return group

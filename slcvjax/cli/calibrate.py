@@ -27,8 +27,8 @@ def _read_inputs(inputs: list[Path], progress: bool = True):
 
 
 def run(args) -> int:
-    from ..calibration.calibrate import to_calibration
-    from ..calibration.staged import CalibrationError
+    from ..calibration.base import CalibrationError
+    from ..calibration.report import to_calibration
     from ..images.centroids import calibrate_detected
     from ..observations.formats import read_calibration
 

@@ -7,8 +7,8 @@ from .common import board_arg, export_opencv
 
 
 def run(args) -> int:
+    from ..calibration.base import CalibrationError
     from ..calibration.chessboard import calibrate_camera_images
-    from ..calibration.staged import CalibrationError
     from ..geometry.rig import Rig
     from ..observations.formats import Calibration
 

@@ -11,12 +11,8 @@ from .common import fmt, pipe_report, print_placed, print_report, summary, write
 
 
 def run(args) -> int:
-    from ..calibration.calibrate import (
-        cramer_rao,
-        laser_errors,
-        reprojections,
-        to_calibration,
-    )
+    from ..calibration.bound import cramer_rao, laser_errors
+    from ..calibration.report import reprojections, to_calibration
     from ..images.centroids import calibrate_detected
     from ..observations.problem import KIND_NAMES
     from ..observations.simulate import make_scene, simulate

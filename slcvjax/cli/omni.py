@@ -8,8 +8,9 @@ from .common import board_arg, print_report
 
 
 def run(args) -> int:
-    from ..calibration.calibrate import calibrate, to_calibration
-    from ..calibration.staged import CalibrationError
+    from ..calibration.base import CalibrationError
+    from ..calibration.calibrate import calibrate
+    from ..calibration.report import to_calibration
     from ..experiments.omni import omni_observations, plot_residuals
 
     pattern = board_arg(args.board)

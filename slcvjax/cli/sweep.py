@@ -13,7 +13,7 @@ def _parse_levels(text: str) -> tuple[float, ...]:
 def run(args) -> int:
     import jax
 
-    from ..calibration.calibrate import resolve_batch
+    from ..calibration.executors import resolve_batch
     from ..experiments.sweep import run_sweep, write_sweep
 
     levels = _parse_levels(args.noise)

@@ -8,7 +8,7 @@ parameters (camera, mirror, lasers, every board pose, every chessboard pose), wi
 ``J`` the Jacobian of the joint problem's residuals (:mod:`slcvjax.calibration.lm`) over every dot that is
 visible, each laser's spot on the wall its beam meets first where it is visible, the
 rim's edge pixels and the chessboard corners, propagated to each laser's position error
-at its working point and its direction error (as :func:`slcvjax.calibration.calibrate.cramer_rao`).
+at its working point and its direction error (as :func:`slcvjax.calibration.bound.cramer_rao`).
 
 The **design** moves the sensor poses within a motion range to minimise the predicted
 error, by gradient descent through the bound.  Each coordinate of a pose is
@@ -37,9 +37,10 @@ import numpy as np
 import optax
 from jaxtyping import Array, Bool
 
-from ..calibration import lm as _lm
-from ..calibration.calibrate import _laser_offset
-from ..calibration.lm import N_LAS, Params
+from ..calibration.bound import laser_offset
+from ..calibration.linearise import rows_at
+from ..calibration.params import N_LAS, Params, make_masks
+from ..calibration.schur import normal_equations, schur_inverse
 from ..geometry.lasers import line_plane_intersection
 from ..geometry.mirror import project_through_mirror
 from ..geometry.pose import Pose, so3_exp
@@ -107,7 +108,7 @@ class Plan:
 # ----------------------------------------------------------------------------- the bound as a function of the poses
 
 
-VIEW_LADDER = (4, 2)  # the plan's views padded to 4, 8, 16, ... (see :func:`_problem`)
+VIEW_LADDER = (4, 2)  # the plan's views padded to 4, 8, 16, ... (see :func:`design_problem`)
 
 
 class Present(NamedTuple):
@@ -118,7 +119,7 @@ class Present(NamedTuple):
     chess: Bool[Array, " C"]
 
 
-def _problem(plan: Plan, pad: bool = True):
+def design_problem(plan: Plan, pad: bool = True):
     """The fixed structure of the plan's joint problem: every dot, every (view, laser, wall) spot,
     the rim's pixels and the direct views' corners, with the numbers of views and of direct
     views padded by :data:`VIEW_LADDER` (``pad=False``: as they are).
@@ -228,18 +229,18 @@ def _weights(rig: Rig, poses: Pose, pk: Packed, present: Present):
 def calibration_covariance(views, rig, T_bw, chess, pk, sigma, present: Present):
     """The plan's bound on the rig's tangent (camera, mirror, lasers: ``rig.tangent_dim`` square,
     px^2 scaled by ``sigma^2``), which dots and spots are observed, and each laser's working point.
-    ``views`` padded as ``pk`` (:func:`_problem`)."""
+    ``views`` padded as ``pk`` (:func:`design_problem`)."""
     poses = _poses(views, T_bw)
     # which points are seen is held while differentiating; the working points move with the poses
     w_dot, w_spot, x_ref = _weights(rig, poses, pk, present)
     w_dot, w_spot = jax.lax.stop_gradient(w_dot), jax.lax.stop_gradient(w_spot)
     params = Params(rig, poses, chess)
-    rows = _lm._rows(params, pk)  # differentiated in reverse mode
+    rows = rows_at(params, pk)  # differentiated in reverse mode
     w_obs = jnp.concatenate([w_dot, w_spot, present.rim, present.chess]).astype(float)
     g, nb = params.n_global, params.n_blocks
-    masks = _lm.make_masks(params)
-    ne = _lm.normal_equations(rows, w_obs[rows.obs], g, nb, masks.glob, masks.blocks)
-    cov = sigma**2 * _lm.schur_inverse(ne)[0]
+    masks = make_masks(params)
+    ne = normal_equations(rows, w_obs[rows.obs], g, nb, masks.glob, masks.blocks)
+    cov = sigma**2 * schur_inverse(ne)[0]
     return cov, w_dot, w_spot, x_ref
 
 
@@ -250,7 +251,7 @@ def _predict(views, rig, T_bw, chess, pk, sigma, present):
     def laser(i):
         s = laser_columns(i).start  # a traced index: the block by a dynamic slice
         c = jax.lax.dynamic_slice(cov, (s, s), (N_LAS, N_LAS))
-        j = jax.jacfwd(lambda d: _laser_offset(rig.lasers, i, x_ref[i], d))(jnp.zeros(N_LAS))
+        j = jax.jacfwd(lambda d: laser_offset(rig.lasers, i, x_ref[i], d))(jnp.zeros(N_LAS))
         return jnp.trace(j @ c @ j.T), c[2, 2] + c[3, 3]
 
     pos, ang = jax.vmap(laser)(jnp.arange(rig.lasers.n))
@@ -317,13 +318,13 @@ def _visible(u, scale, rig, T_bw, pk, present):
 _value_and_grad_jit = PersistentJit(jax.value_and_grad(_objective), "design_value_and_grad")
 
 
-class _Compiled:
-    """A plan's fixed problem, padded (:func:`_problem`): the bound and its gradient are compiled
+class Compiled:
+    """A plan's fixed problem, padded (:func:`design_problem`): the bound and its gradient are compiled
     once per bucket of view counts.  Its design variables ``u`` have the padded views' rows
     (copies of the first view's, whose gradient is zero: they move nowhere)."""
 
     def __init__(self, plan: Plan, pad: bool = True):
-        self.pk, self.T_bw, self.chess, self.present = _problem(plan, pad)
+        self.pk, self.T_bw, self.chess, self.present = design_problem(plan, pad)
         self.scale = jnp.asarray(np.maximum(plan.scale, 1e-12))
         self.n_v = plan.views.shape[0]
         self.cap = int(self.present.views.shape[0])
@@ -354,11 +355,11 @@ class _Compiled:
 
 def predict(plan: Plan) -> Prediction:
     """The predicted (Cramer-Rao) laser accuracy of a planned calibration."""
-    c = _Compiled(plan)
+    c = Compiled(plan)
     return _prediction(c, plan.views)
 
 
-def _prediction(c: _Compiled, views) -> Prediction:
+def _prediction(c: Compiled, views) -> Prediction:
     pos, ang, nd, ns = c.predict(views)
     return Prediction(np.sqrt(np.asarray(pos)), np.sqrt(np.asarray(ang)), int(nd), int(ns))
 
@@ -375,7 +376,7 @@ class DesignResult:
     timings: dict
 
 
-def _line_search(c: "_Compiled", u, step, lr, f0, ref_pos, ref_ang, pw):
+def _line_search(c: "Compiled", u, step, lr, f0, ref_pos, ref_ang, pw):
     """A step ``u - a * step`` (a <= lr) that lowers the objective: ``(u, f, gradient, a)``, or
     Nones.  Each try evaluates the objective with its gradient (one compiled program serves the
     search and the steps; an accepted try, most of them, is not evaluated again).
@@ -419,7 +420,7 @@ def optimise(
     afresh once.  Stops after ``steps`` accepted steps or when a fresh start does not help.
     """
     t0 = time.perf_counter()
-    c = _Compiled(plan)
+    c = Compiled(plan)
     u = c.u_of(plan.views)
     pos0, ang0, _, _ = c.predict(c.views_of(u))
     ref_pos, ref_ang = jnp.maximum(pos0, 1e-30), jnp.maximum(ang0, 1e-30)
@@ -473,7 +474,7 @@ def confirm(plan: Plan, trials: int, seed: int = 0, progress: bool = False) -> d
     first reason: a plan whose views leave a laser without usable spots); the RMS figures
     are None when every trial failed.
     """
-    from ..calibration.calibrate import laser_errors
+    from ..calibration.bound import laser_errors
     from ..observations.simulate import box_scene
 
     scene = box_scene(plan.rig, plan.views, plan.half_width, n_chess_views=len(plan.chess_poses) or 12)
@@ -502,8 +503,9 @@ def simulated_calibrations(plan: Plan, trials: int, seed: int = 0, progress: boo
     """``trials`` simulations of the plan's box calibration at its noise (trial ``t``: seed
     ``seed + t``), each calibrated from its usable observations: yields ``(obs, truth, result,
     None)``, or ``(obs, truth, None, reason)`` where a calibration cannot be made."""
-    from ..calibration.calibrate import calibrate, require_determined
-    from ..calibration.staged import CalibrationError
+    from ..calibration.base import CalibrationError
+    from ..calibration.calibrate import calibrate
+    from ..calibration.result import require_determined
     from ..observations.simulate import box_scene, simulate
 
     if trials < 1:
@@ -573,9 +575,9 @@ def design_document(res: DesignResult, confirmed: dict | None = None) -> dict:
 
 def plot_design(res: DesignResult, path) -> Path:
     """Per-laser predicted std before and after, and the sensor positions in the box (top view)."""
-    from ..plots import _plt
+    from ..plots import pyplot
 
-    plt = _plt()
+    plt = pyplot()
     path = Path(path)
     b, a = res.predicted_before, res.predicted_after
     n = b.position_std_mm.size

@@ -44,10 +44,10 @@ from ..geometry.lasers import Lasers
 from ..geometry.mirror import BODY_CLEAR_FAR, body_clearance, project_through_mirror, solve_mirror_point
 from ..geometry.rig import Rig
 from ..images.pipe import beam_pipe_point
-from ..measurement.measure import _circle_sensitivity, triangulate_spot
+from ..measurement.measure import circle_sensitivity, triangulate_spot
 from ..support.persist import PersistentJit
 from ..support.safe import safe_normalize
-from .design import MIN_SPOTS, Plan, _problem, calibration_covariance, pad_views
+from .design import MIN_SPOTS, Plan, calibration_covariance, design_problem, pad_views
 
 BODY_RADIUS_MM = 12.0  # the renderer's default sensor body (RenderOptions)
 BODY_GAP_MM = 8.0
@@ -141,7 +141,7 @@ def _spot_margins(rig: Rig, x, body, proj):
     return proj.valid & (clear > 0.0), rim, clear, img, m
 
 
-def _pipe_prediction(rig: Rig, cov, sigma, radius, body):
+def pipe_prediction(rig: Rig, cov, sigma, radius, body):
     """The pipe of ``radius`` around the camera's z axis: the diameter's predicted variance (mm^2;
     inf with fewer than 3 spots seen), and per laser whether its spot is seen, its margins and
     the angle between its beam and the ray that sees it (rad)."""
@@ -176,7 +176,7 @@ def _pipe_prediction(rig: Rig, cov, sigma, radius, body):
     var_r = jnp.einsum("ni,nij,nj->n", u, blocks, u)
     var_r = jnp.where(seen, var_r, jnp.inf)
     w = jnp.where(seen, jnp.min(var_r) / var_r, 0.0)  # as fit_circle weighs the points
-    sens = _circle_sensitivity(jnp.array([0.0, 0.0, radius]), q, w).reshape(3, 2 * n)
+    sens = circle_sensitivity(jnp.array([0.0, 0.0, radius]), q, w).reshape(3, 2 * n)
     var_d = 4.0 * sens[2] @ cov_q @ sens[2]
     var_d = jnp.where(jnp.sum(seen) >= 3, var_d, jnp.inf)
     return var_d, seen, rim, body_m, img, angle
@@ -194,7 +194,7 @@ def _evaluate(u, start, ranges, rig0, views, T_bw, chess, pk, sigma, present, ra
     the wall spots per laser, whether each emitter is seen."""
     rig = rig0.with_lasers(_lasers_at(u, start, ranges))
     cov, _, w_spot, _ = calibration_covariance(views, rig, T_bw, chess, pk, sigma, present)
-    var_d, seen, rim, body_m, img, angle = jax.vmap(lambda r: _pipe_prediction(rig, cov, sigma, r, body))(radii)
+    var_d, seen, rim, body_m, img, angle = jax.vmap(lambda r: pipe_prediction(rig, cov, sigma, r, body))(radii)
     wall = jax.ops.segment_sum(w_spot.astype(int), pk.spot_laser, num_segments=rig.lasers.n)
     # a laser with too few wall spots is not calibrated: its bound (and every diameter) is undetermined
     var_d = jnp.where((jnp.min(wall) >= MIN_SPOTS) & (var_d > 0.0), var_d, jnp.inf)
@@ -256,11 +256,11 @@ class MeasurePrediction:
         }
 
 
-class _Compiled:
+class Compiled:
     def __init__(self, mp: MeasurePlan):
         plan = mp.plan
         self.mp = mp
-        self.pk, self.T_bw, self.chess, present = _problem(plan)
+        self.pk, self.T_bw, self.chess, present = design_problem(plan)
         self.start = {k: jnp.asarray(v) for k, v in mounting_of(plan.rig.lasers).items()}
         self.ranges = jnp.asarray([np.radians(mp.elevation_range_deg), mp.ring_radius_range_mm, mp.ring_z_range_mm])
         self.n = plan.rig.lasers.n
@@ -304,7 +304,7 @@ class MeasureDesign:
     timings: dict
 
 
-def _grid_start(c: "_Compiled", wall_needed, points: int):
+def _grid_start(c: "Compiled", wall_needed, points: int):
     """The best feasible mounting among common offsets of every beam's elevation, the ring's radius
     and its height on a grid over the range (``points`` values each; the start included):
     ``(u, prediction)``, or the grid point that sees the most spots with ``feasible`` False."""
@@ -345,7 +345,7 @@ def optimise_lasers(
     the result says so (``feasible`` False) and carries the grid point that sees the most spots.
     """
     t0 = time.perf_counter()
-    c = _Compiled(mp)
+    c = Compiled(mp)
     before = c.evaluate(jnp.zeros(c.n + 2))
     wall_needed = np.minimum(before.wall_spots, mp.min_wall_spots)
     t_compile = time.perf_counter() - t0
@@ -402,7 +402,7 @@ def confirm_lasers(mp: MeasurePlan, rig: Rig, trials: int, seed: int = 0, progre
     """
     import dataclasses
 
-    from ..calibration.calibrate import to_calibration
+    from ..calibration.report import to_calibration
     from ..images.pipe import PipeScene, measure_observations, measurement_inputs, simulate_pipe, view_circle
     from .design import simulated_calibrations
 
@@ -490,9 +490,9 @@ def plot_laser_design(res: MeasureDesign, path, confirmed: dict | None = None):
     the beams in a section through the axis, and the smallest beam-ray angle per pipe."""
     from pathlib import Path
 
-    from ..plots import _plt
+    from ..plots import pyplot
 
-    plt = _plt()
+    plt = pyplot()
     path = Path(path)
     b, a = res.predicted_before, res.predicted_after
     d = res.plan.diameters

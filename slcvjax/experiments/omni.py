@@ -15,8 +15,8 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
+from ..calibration.base import CalibrationError
 from ..calibration.chessboard import board_points, detect_corners
-from ..calibration.staged import CalibrationError
 from ..geometry.rig import project_board_points
 from ..observations.formats import Calibration, FormatError, Observations, ViewObs
 
@@ -83,9 +83,9 @@ def plot_residuals(images: list[str | Path], cal: Calibration, obs: Observations
     (magnified, the scale in the title) and the view's RMS; written as a PNG."""
     import cv2
 
-    from ..plots import _plt
+    from ..plots import pyplot
 
-    plt = _plt()
+    plt = pyplot()
     by_name = {Path(p).name: p for p in images}
     res = view_residuals(cal, obs)
     n = len(obs.views)

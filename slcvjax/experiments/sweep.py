@@ -27,7 +27,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..calibration.calibrate import calibrate_many, cramer_rao, laser_errors, require_determined, resolve_batch
+from ..calibration.bound import cramer_rao, laser_errors
+from ..calibration.calibrate import calibrate_many
+from ..calibration.executors import resolve_batch
+from ..calibration.result import require_determined
 from ..geometry.rig import Rig, laser_columns
 from ..observations.formats import write_json_atomic, write_text_atomic
 from ..observations.simulate import make_scene, simulate
@@ -167,9 +170,9 @@ def sweep_csv(doc: dict) -> str:
 
 def plot_sweep(doc: dict, path) -> Path:
     """The paper's Figs. 6–7: RMS error of each component against noise, one curve per laser, bound dashed."""
-    from ..plots import _plt
+    from ..plots import pyplot
 
-    plt = _plt()
+    plt = pyplot()
     path = Path(path)
     fig, axs = plt.subplots(2, 3, figsize=(13, 7.5))
     noise = doc["noise"]

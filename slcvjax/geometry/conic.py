@@ -58,7 +58,7 @@ class ConicMirror(eqx.Module):
         radius: the rim's radius ``r`` (mm).
 
     Like the cone, its pose has 5 degrees of freedom (:meth:`retract`); the conic constant is a
-    sixth, estimated only where asked (``estimate={"shape"}`` of :func:`slcvjax.calibration.lm.make_masks`).
+    sixth, estimated only where asked (``estimate={"shape"}`` of :func:`slcvjax.calibration.params.make_masks`).
     """
 
     apex: Float[Array, "3"]

@@ -69,7 +69,7 @@ class ConeMirror(eqx.Module):
     def retract(self, delta: Float[Array, " d"]) -> "ConeMirror":
         """``apex += delta[:3]``; the axis tilts by ``delta[3:5]`` (radians) in its tangent plane.
         The cone's shape is given: a sixth component (the rig's shape column) is not used, and
-        :func:`slcvjax.calibration.lm.make_masks` never frees it for a cone."""
+        :func:`slcvjax.calibration.params.make_masks` never frees it for a cone."""
         apex, axis = retract_pose(self.apex, self.axis, delta[:5])
         return ConeMirror(apex, axis, self.radius, self.height)
 

@@ -212,7 +212,8 @@ def calibrate_detected(obs: Observations, correct_centroids: bool = True, **kwar
     keeps in its lasers but not in its std. Observations that are not a detection's (no sizes
     recorded) are calibrated once. Returns the result, the observations it was made from, and a
     list of what was decided."""
-    from ..calibration.calibrate import calibrate, to_calibration
+    from ..calibration.calibrate import calibrate
+    from ..calibration.report import to_calibration
 
     res = calibrate(obs, **kwargs)
     used, notes = obs, []

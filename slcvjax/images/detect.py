@@ -40,7 +40,7 @@ from ..observations.formats import (
     Observations,
     SpotObs,
     ViewObs,
-    _load_json,
+    load_json,
     read_sensor_fields,
 )
 
@@ -120,7 +120,7 @@ def setup_to_json(setup: Setup) -> dict:
 
 def read_setup(path: str | Path) -> Setup:
     """Read and validate ``setup.json`` (raises :class:`FormatError` naming the file, field and index)."""
-    ctx, doc = _load_json(path)
+    ctx, doc = load_json(path)
     fmt = ctx.get(doc, "format", "", str)
     if fmt != SETUP_FORMAT:
         ctx.fail("format", f"expected {SETUP_FORMAT!r}, got {fmt!r}")
@@ -434,7 +434,7 @@ def _wrap(a):
     return (np.asarray(a) + 180.0) % 360.0 - 180.0
 
 
-def _order_grid(
+def order_grid(
     px: np.ndarray,
     centre: np.ndarray,
     layout: BoardLayout,
@@ -483,7 +483,7 @@ def _order_grid(
             return "a whole row is hidden and either neighbouring row could be it (ambiguous rows)"
         if probe is not None:
             # the side said to hold no row must show nothing where one would lie
-            a0 = _circular_mean_deg(azimuth_deg(px, centre))
+            a0 = circular_mean_deg(azimuth_deg(px, centre))
             col_az_abs = [a0 + float(np.mean(a[groups[k]])) for k in full]
             if hidden_in:  # the row beyond the outer one must be absent
                 edge, step_next = outer, step_out
@@ -530,7 +530,7 @@ def _columns(px: np.ndarray, centre: np.ndarray, layout: BoardLayout):
     cols, rows = layout.cols, layout.rows
     if len(px) < cols or len(px) > cols * rows:
         return None
-    a = _wrap(azimuth_deg(px, centre) - _circular_mean_deg(azimuth_deg(px, centre)))
+    a = _wrap(azimuth_deg(px, centre) - circular_mean_deg(azimuth_deg(px, centre)))
     r = np.linalg.norm(px - centre, axis=1)
     order = np.argsort(a)
     gaps = np.diff(a[order])
@@ -667,7 +667,7 @@ def label_boards(
     groups = _split_by_azimuth(az, len(walls))
     names = list(walls)
     nominal = np.array([walls[k].azimuth_deg for k in names])
-    means = [_circular_mean_deg(az[g]) for g in groups]
+    means = [circular_mean_deg(az[g]) for g in groups]
     assign = [int(np.argmin(np.abs(_wrap(m - nominal)))) for m in means]
     used: dict[int, int] = {}
     for gi, j in enumerate(assign):
@@ -678,9 +678,7 @@ def label_boards(
             continue
         used[j] = gi
         probe = None if det.green is None else _darkness_probe(det.green, det.disc)
-        got = _order_grid(
-            det.dots[groups[gi]], det.disc.centre, walls[name], float(np.mean(det.disc.axes)), probe=probe
-        )
+        got = order_grid(det.dots[groups[gi]], det.disc.centre, walls[name], float(np.mean(det.disc.axes)), probe=probe)
         if isinstance(got, str) or got is None:
             why = got if isinstance(got, str) else f"{len(groups[gi])} dots could not be placed on the grid"
             problems.append(f"{name}: {why}; board left out")
@@ -743,7 +741,7 @@ def label_spots(
         centres = np.asarray(setup.laser_azimuth_deg, float) % 360.0
     else:
         groups = _split_by_azimuth(all_az, n)
-        centres = np.array([_circular_mean_deg(all_az[g]) % 360 for g in groups])
+        centres = np.array([circular_mean_deg(all_az[g]) % 360 for g in groups])
         if len(centres) < n:
             for i in range(len(dets)):
                 problems[i].append(f"the spots form {len(centres)} azimuth groups for {n} lasers; none labelled")
@@ -767,7 +765,7 @@ def label_spots(
         for name, layout in walls.items():
             px, seen = boards_seen[i][name]
             wall_az[name] = (
-                _circular_mean_deg(azimuth_deg(px[seen], d.disc.centre)) if seen.any() else layout.azimuth_deg
+                circular_mean_deg(azimuth_deg(px[seen], d.disc.centre)) if seen.any() else layout.azimuth_deg
             )
         for k, li in zip(idx, lab, strict=True):
             j = owner[k][1]
@@ -913,5 +911,5 @@ def _progress(items, enabled: bool, desc: str):
     return tqdm(items, desc=desc, unit="image", leave=False)
 
 
-def _circular_mean_deg(a: np.ndarray) -> float:
+def circular_mean_deg(a: np.ndarray) -> float:
     return float(math.degrees(np.angle(np.exp(1j * np.radians(a)).mean())))

@@ -158,7 +158,7 @@ def _pipe_shade(origin, direction, valid, seen, centre, axis, radius, spots, spo
     return jnp.stack([g, g, r])  # BGR
 
 
-def _chess_sample(d, ok, R, t, cols, rows, square):
+def chess_sample(d, ok, R, t, cols, rows, square):
     x, ahead = line_plane_intersection(jnp.zeros(3), d, Pose(R, t))
     xy = (R.T @ (x - t))[:2]
     i = jnp.floor(xy[0] / square)
@@ -197,7 +197,7 @@ def _camera_rays(cam, samples):
 
 @jax.jit
 def _chess_band(rays, R, t, grid):
-    f = lambda d, ok: _chess_sample(d, ok, R, t, grid[0], grid[1], grid[2])  # noqa: E731
+    f = lambda d, ok: chess_sample(d, ok, R, t, grid[0], grid[1], grid[2])  # noqa: E731
     return jax.lax.map(lambda r: jax.vmap(f)(*r), rays)
 
 
@@ -237,7 +237,7 @@ def _chess_fine(cam, centres, offsets, R, t, grid):
         def f(off):
             p = xy + jac @ off
             d = jnp.stack([p[0], p[1], jnp.ones_like(p[0])])
-            return _chess_sample(d / jnp.linalg.norm(d), ok, R, t, grid[0], grid[1], grid[2])
+            return chess_sample(d / jnp.linalg.norm(d), ok, R, t, grid[0], grid[1], grid[2])
 
         return jax.vmap(f)(offsets).mean(axis=0)
 
@@ -455,7 +455,7 @@ class Renderer:
         return _finish(self._cells(out, fine), self.opts, seed)
 
 
-def _grid_shape(points: np.ndarray) -> tuple[int, int]:
+def grid_shape(points: np.ndarray) -> tuple[int, int]:
     """(cols, rows) of a regular grid of board points ordered x fastest."""
     cols = len(np.unique(np.round(points[:, 0], 6)))
     rows = len(np.unique(np.round(points[:, 1], 6)))
@@ -472,21 +472,21 @@ def scene_setup(scene, image_names: list[str], chess_names: list[str]):
     the box's drawing); the lasers are numbered by the detector's convention
     (by increasing azimuth from the one nearest 0 deg), which the presets follow.
     """
-    from .detect import BoardLayout, Setup, _circular_mean_deg, azimuth_deg
+    from .detect import BoardLayout, Setup, azimuth_deg, circular_mean_deg
 
     rig = scene.rig
     ruv, rok = project_rim(rig, jnp.linspace(0, 2 * np.pi, 64, endpoint=False))
     centre = np.asarray(ruv)[np.asarray(rok)].mean(axis=0)
     boards = {}
     for name, pts in scene.boards.items():
-        cols, rows = _grid_shape(pts)
+        cols, rows = grid_shape(pts)
         layout = BoardLayout(np.asarray(pts, float), cols, rows)
         if name != scene.chess_board and len(scene.box_poses):
             uv, ok = project_board_points(rig, scene.box_poses[0][name], jnp.asarray(pts))
             uv, ok = np.asarray(uv), np.asarray(ok)
             if ok.any():
                 az = azimuth_deg(uv[ok], centre)
-                layout.azimuth_deg = _circular_mean_deg(az) % 360
+                layout.azimuth_deg = circular_mean_deg(az) % 360
             grid_uv = uv.reshape(rows, cols, 2)
             if cols > 1:
                 d = (azimuth_deg(grid_uv[:, 1], centre) - azimuth_deg(grid_uv[:, 0], centre) + 180) % 360 - 180
@@ -532,7 +532,7 @@ def render_scene(scene, out_dir, opts: RenderOptions = RenderOptions(), progress
     rig = scene.rig
     renderer = Renderer(rig.camera, rig.mirror, opts)
     walls = [b for b in scene.boards if b != scene.chess_board]
-    cols, rows = _grid_shape(scene.boards[scene.chess_board])
+    cols, rows = grid_shape(scene.boards[scene.chess_board])
     square = float(scene.boards[scene.chess_board][1, 0] - scene.boards[scene.chess_board][0, 0])
     names, chess_names = [], []
     jobs = [("view", i) for i in range(len(scene.box_poses))] + [("chess", j) for j in range(len(scene.chess_poses))]

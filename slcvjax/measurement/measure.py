@@ -480,7 +480,7 @@ def _circle_cost(theta, q, w):
 
 
 @jax.jit
-def _circle_sensitivity(theta, q, w):
+def circle_sensitivity(theta, q, w):
     """d theta / d q (3, n, 2) at a minimum, by the implicit-function theorem."""
     h = jax.hessian(_circle_cost, argnums=0)(theta, q, w)
     b = jax.jacfwd(jax.grad(_circle_cost, argnums=0), argnums=1)(theta, q, w)
@@ -542,7 +542,7 @@ def fit_circle(q: np.ndarray, cov_q: np.ndarray | None = None, weighted: bool = 
     if cov_q is not None:
         size = bucket(n)  # padded points of weight 0 change nothing: one compilation per bucket
         qp, wp = pad_rows(q, size), pad_rows(w, size, 0.0)
-        sens = np.asarray(_circle_sensitivity(jax.device_put(theta), jax.device_put(qp), jax.device_put(wp)))
+        sens = np.asarray(circle_sensitivity(jax.device_put(theta), jax.device_put(qp), jax.device_put(wp)))
         sens = sens[:, :n].reshape(3, 2 * n)
         ct = sens @ np.asarray(cov_q) @ sens.T
         if not np.all(np.isfinite(ct)):

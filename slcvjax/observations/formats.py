@@ -94,7 +94,7 @@ class _Ctx:
         return [] if val is None else val
 
 
-def _load_json(path: str | os.PathLike) -> tuple[_Ctx, Any]:
+def load_json(path: str | os.PathLike) -> tuple[_Ctx, Any]:
     ctx = _Ctx(str(path))
     try:
         text = Path(path).read_text(encoding="utf-8")
@@ -182,7 +182,7 @@ class Observations:
     # ``mirror_radius`` and ``mirror_height`` (the rim circle's radius and sag, for every kind)
     mirror_shape: dict | None = None
     # ``perspective`` (a pinhole), ``telecentric`` (orthographic: see ``slcvjax.geometry.camera``)
-    # or ``auto`` (chosen by the calibration: ``slcvjax.calibration.calibrate.perspective_test``)
+    # or ``auto`` (chosen by the calibration: ``slcvjax.calibration.model_selection.perspective_test``)
     camera_projection: str = "perspective"
 
 
@@ -281,7 +281,7 @@ def read_sensor_fields(ctx: _Ctx, doc: Any) -> tuple[tuple[int, int], float, flo
 
 def read_observations(path: str | os.PathLike) -> Observations:
     """Read and validate a ``slcv-observations/1`` file (raises :class:`FormatError`)."""
-    ctx, doc = _load_json(path)
+    ctx, doc = load_json(path)
     _check_format(ctx, doc, OBSERVATIONS_FORMAT)
     units = ctx.get(doc, "units", "", str, optional=True)
     if units is not None and units != "mm":
@@ -490,7 +490,7 @@ def read_calibration(path: str | os.PathLike) -> Calibration:
     A file with a camera only (from ``slcvjax camera``) gives a rig whose
     mirror and lasers are absent: ``rig.mirror`` is None and ``rig.lasers`` has 0 lines.
     """
-    ctx, doc = _load_json(path)
+    ctx, doc = load_json(path)
     _check_format(ctx, doc, CALIBRATION_FORMAT)
     c = ctx.get(doc, "camera", "", dict)
     w = ctx.integer(ctx.get(c, "width", "camera"), "camera.width", lo=1)

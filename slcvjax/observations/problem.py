@@ -345,7 +345,7 @@ class Layout(NamedTuple):
 
         The joint problem's ladders are coarse (:data:`OBSERVATION_LADDER`: 4096 rows, then
         steps of 4x; :data:`POSE_LADDER`: 64 poses, then 4x): its loops visit only the real
-        rows (``slcvjax.calibration.lm.accumulate``), so the padding costs little (measured by
+        rows (``slcvjax.calibration.linearise.accumulate``), so the padding costs little (measured by
         ``benchmarks/bench_compile.py``'s padding part), and every dataset up to 4096
         observations of each kind and 64 poses of each kind shares one compilation.
 

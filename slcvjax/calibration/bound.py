@@ -1,0 +1,129 @@
+"""The lasers at their working range: working points, their std from a covariance, their errors
+against a truth, and the Cramer-Rao bound of a scene."""
+
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..geometry.lasers import Lasers, line_plane_intersection
+from ..geometry.pose import Pose
+from ..geometry.rig import (
+    Rig,
+    laser_columns,
+)
+from ..observations.formats import Calibration, Observations
+from ..observations.problem import Packed, pack, stack_poses, unstack_poses
+from ..support.safe import std_of_variance
+from .covariance import covariance_of
+from .params import Params, make_masks
+from .rigid import (
+    box_model,
+    rigid_group,
+    rigid_masks,
+    rigid_params,
+)
+
+
+def laser_working_points(rig: Rig, poses: Pose, pk: Packed) -> np.ndarray:
+    """Per laser, the point of its line nearest the mean of its spots on their boards (mm)."""
+    n = rig.lasers.n
+    out = np.zeros((n, 3))
+    laser_of, pose_of = np.asarray(pk.spot_laser), np.asarray(pk.spot_pose)
+    for l_idx in range(n):
+        p, d = rig.lasers.points[l_idx], rig.lasers.directions[l_idx]
+        pts = [
+            np.asarray(line_plane_intersection(p, d, Pose(poses.R[k], poses.t[k]))[0])
+            for k in pose_of[laser_of == l_idx]
+        ]
+        c = np.mean(pts, axis=0) if pts else np.asarray(p)
+        pn, dn = np.asarray(p), np.asarray(d)
+        out[l_idx] = pn + ((c - pn) @ dn) * dn
+    return out
+
+
+def laser_offset(lasers: Lasers, i: int, x_ref, delta4):
+    """Laser ``i`` moved by ``delta4``: its foot at ``x_ref`` less ``x_ref`` (mm)."""
+    return lasers.at_working_point(i, x_ref, delta4)[0] - x_ref
+
+
+def laser_std(rig: Rig, cov_glob: np.ndarray, x_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per laser: position std (mm) of the line at ``x_ref`` and direction std (rad); NaN for a
+    laser whose covariance block is not positive (undetermined)."""
+    n = rig.lasers.n
+    pos, ang = np.zeros(n), np.zeros(n)
+    cov_glob = np.asarray(cov_glob)
+    for i in range(n):
+        sl = laser_columns(i)
+        c = cov_glob[sl, sl]
+        j = np.asarray(jax.jacfwd(lambda d, i=i: laser_offset(rig.lasers, i, jnp.asarray(x_ref[i]), d))(jnp.zeros(4)))
+        # a block that is not positive: the data do not determine this laser (NaN, not 0)
+        definite = bool(np.all(np.isfinite(c))) and (
+            np.linalg.eigvalsh(0.5 * (c + c.T)).min() >= -1e-9 * max(np.abs(c).max(), 1e-300)
+        )
+        pos[i] = std_of_variance(np.trace(j @ c @ j.T)) if definite else np.nan
+        ang[i] = std_of_variance(c[2, 2] + c[3, 3]) if definite else np.nan
+    return pos, ang
+
+
+def laser_errors(est: Rig, truth: Rig, x_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per laser: distance (mm) from the true working point to the estimated line, and angle (rad)."""
+    p, d = np.asarray(est.lasers.points), np.asarray(est.lasers.directions)
+    v = x_ref - p
+    pos = np.linalg.norm(v - np.sum(v * d, axis=1, keepdims=True) * d, axis=1)
+    dt = np.asarray(truth.lasers.directions)
+    # atan2 keeps full precision near zero, where arccos of a dot product bottoms out at ~1.5e-8 rad
+    ang = np.arctan2(np.linalg.norm(np.cross(d, dt), axis=1), np.abs(np.sum(d * dt, axis=1)))
+    return pos, ang
+
+
+def cramer_rao(
+    truth: Calibration,
+    obs: Observations,
+    sigma: "float | Sequence[float]",
+    packed: Packed | None = None,
+    rigid: "bool | list[str]" = False,
+) -> dict:
+    """The Cramer-Rao bound of a scene: ``sigma^2 (J^T J)^-1`` at the true parameters; with
+    ``sigma`` one per kind (dot, spot, rim, chess corner), ``(sum_k N_k / sigma_k^2)^-1``.
+
+    Returns the covariance and, per laser, the bound's position std at the working
+    point (mm) and direction std (rad), with their RMS over lasers.  ``packed``: the
+    observations as a calibration packed them (``CalibrationResult.packed``: spots
+    detected without a board have the board the staged stage gave them); by default
+    ``pack(obs)``, which leaves such spots out.  ``rigid``: the bound of the rigid box
+    model (as :func:`calibrate`'s ``rigid``; the truth's board poses must be rigid);
+    its covariance is then the rig's block, and ``box_cov`` the whole global block
+    (rig, then 6 per box board but the gauge, ``box_model``'s order).
+    """
+    pk = pack(obs) if packed is None else packed
+    poses = stack_poses([truth.board_poses[v][b] for v, b in pk.pose_keys])
+    chess = [truth.calibration_view_poses[c] for c in pk.chess_keys] if truth.calibration_view_poses else []
+    chess_stack = stack_poses(chess) if chess else Pose(jnp.zeros((0, 3, 3)), jnp.zeros((0, 3)))
+    params = Params(truth.rig, poses, chess_stack)
+    masks = make_masks(params)
+    out = {}
+    group = rigid_group(obs, rigid)
+    if group:
+        model = box_model(pk, group)
+        params = rigid_params(model, pk.pose_keys, unstack_poses(poses), truth.rig, chess_stack)
+        masks = rigid_masks(model, masks, pk.n_poses)
+        pk = model.packed(pk)
+    # plain least squares (Huber at 1e9 px), sharing the compiled covariance of calibrate()
+    cov = covariance_of(params, pk, masks, "huber", 1e9, sigma=sigma)
+    if group:
+        g = truth.rig.tangent_dim
+        out["box_cov"] = np.asarray(cov.glob)
+        out["box_model"] = model
+        cov = cov._replace(glob=np.asarray(cov.glob)[:g, :g])
+    x_ref = laser_working_points(truth.rig, poses, pk)
+    pos, ang = laser_std(truth.rig, np.asarray(cov.glob), x_ref)
+    return out | {
+        "cov": cov,
+        "x_ref": x_ref,
+        "position_std_mm": pos,
+        "direction_std_rad": ang,
+        "position_rms_mm": float(np.sqrt(np.mean(pos**2))),
+        "direction_rms_rad": float(np.sqrt(np.mean(ang**2))),
+    }

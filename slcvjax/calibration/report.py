@@ -1,0 +1,229 @@
+"""A calibration's report and file content: residuals, uncertainty, stages, reprojections."""
+
+import jax.numpy as jnp
+import numpy as np
+
+from ..geometry.pose import Pose
+from ..geometry.rig import (
+    APEX_COLUMNS,
+    CAMERA_COLUMNS,
+    CAMERA_NAMES,
+    SHAPE_COLUMN,
+    TILT_COLUMNS,
+    Rig,
+    project_board_points,
+    project_rim,
+    project_spots,
+)
+from ..observations.formats import Calibration, Observations
+from ..observations.problem import KIND_NAMES, Kind, unstack_poses
+from ..support.safe import std_of_variance
+from .bound import laser_std, laser_working_points
+from .evaluate import per_observation
+from .result import CalibrationResult
+
+
+def _obs_table(result: CalibrationResult):
+    """Per observation: kind, 2D residual norm (px), validity, its (view, board, laser) labels
+    and its index in its view (a dot's in its board, a spot's among the view's spots; -1 where
+    the problem was not packed from observations)."""
+    pk = result.packed
+    norm, kind, ok = per_observation(result.params, pk)
+    n_obs = norm.size
+    n_d, n_s, n_r = pk.dot_pose.shape[0], pk.spot_pose.shape[0], pk.rim_pixels.shape[0]
+    view = np.full(n_obs, -1)
+    board = np.full(n_obs, "", dtype=object)
+    laser = np.full(n_obs, -1)
+    index = np.full(n_obs, -1)
+    keys = pk.pose_keys
+    for i, k in enumerate(np.asarray(pk.dot_pose)):
+        view[i], board[i] = keys[k]
+    for i, (_, _, j) in enumerate(pk.dot_src):
+        index[i] = j
+    for j, (k, las) in enumerate(zip(np.asarray(pk.spot_pose), np.asarray(pk.spot_laser), strict=True)):
+        view[n_d + j], board[n_d + j] = keys[k]
+        laser[n_d + j] = las
+    for j, (_, i) in enumerate(pk.spot_src):
+        index[n_d + j] = i
+    for j, k in enumerate(np.asarray(pk.chess_pose)):
+        view[n_d + n_s + n_r + j] = pk.chess_keys[k]
+    return norm, kind, ok, view, board, laser, index
+
+
+def _finite_or_none(x):
+    """A number or array as JSON: its values, with None for a NaN (undetermined) one."""
+    a = np.asarray(x, dtype=float)
+    out = [float(v) if np.isfinite(v) else None for v in a.ravel()]
+    return out[0] if a.ndim == 0 else out
+
+
+def _rms(x):
+    return float(np.sqrt(np.mean(np.square(x)))) if len(x) else None
+
+
+def report(result: CalibrationResult, obs: Observations) -> dict:
+    """The ``residuals`` and ``uncertainty`` sections of the output (plain JSON types)."""
+    norm, kind, ok, view, board, laser, index = _obs_table(result)
+    sigma = float(result.cov.sigma)
+    point = (kind == Kind.DOT) | (kind == Kind.SPOT)
+    # beyond 5 sigmas of its own kind (the pooled sigma where the kind has none)
+    own = np.array([result.kind_sigma.get(k.label) for k in Kind], dtype=float)  # None: NaN
+    own = np.where(np.isfinite(own), own, sigma)
+    outlier = ok & point & (norm > 5.0 * own[kind])
+    per_view = {obs.views[v].name: _rms(norm[ok & point & (view == v)]) for v in range(len(obs.views))}
+    boards = sorted({b for b in board if b})
+    per_board = {b: _rms(norm[ok & (kind == Kind.DOT) & (board == b)]) for b in boards}
+    per_laser = {str(i): _rms(norm[ok & (kind == Kind.SPOT) & (laser == i)]) for i in range(obs.n_lasers)}
+    per_direct = {
+        obs.calibration_views[c].name: _rms(norm[ok & (kind == Kind.CHESS) & (view == c)])
+        for c in result.packed.chess_keys
+    }
+    outliers = []
+    for i in np.flatnonzero(outlier):
+        item = {
+            "kind": KIND_NAMES[kind[i]],
+            "view": obs.views[view[i]].name,
+            "board": board[i],
+            "index": int(index[i]),
+            "residual_px": float(norm[i]),
+        }
+        if kind[i] == Kind.SPOT:
+            item["laser"] = int(laser[i])
+        outliers.append(item)
+    residuals = {
+        "rms_px": _rms(norm[ok]),
+        "sigma_px": sigma,
+        "dof": int(result.cov.dof),
+        "by_kind_rms_px": {k.label: _rms(norm[ok & (kind == k)]) for k in Kind},
+        "by_kind_sigma_px": {k: (None if not np.isfinite(v) else v) for k, v in result.kind_sigma.items()},
+        "per_view_rms_px": per_view,
+        "per_board_rms_px": per_board,
+        "per_laser_rms_px": per_laser,
+        "per_direct_view_rms_px": per_direct,
+        "invalid": int(np.sum(~ok)),
+        "outliers": outliers,
+        "repairs": result.repairs,
+        "rim_outliers": int(np.sum(ok & (kind == Kind.RIM) & (norm > 5.0 * (result.kind_sigma.get("rim") or sigma)))),
+        "loss": {"kind": result.loss, "scale_px": result.scale},
+    }
+    cov = np.asarray(result.cov.glob)
+    sd = std_of_variance(np.diag(cov))
+    x_ref = laser_working_points(result.rig, result.params.poses, result.packed)
+    pos, ang = laser_std(result.rig, cov, x_ref)
+    held = list(result.undetermined_lasers)
+    pos[held], ang[held] = np.nan, np.nan  # held at a placeholder: a std of 0 would claim it known
+    last = result.passes[-1] if result.passes else None
+    uncertainty = {
+        "converged": result.converged,
+        **(
+            {}
+            if result.converged or last is None
+            else {
+                "status": f"not a minimum: the last pass ({last.name}) {last.result} after {last.steps} steps; "
+                "the std below are those of the point where it stopped"
+            }
+        ),
+        "sigma_px": sigma,
+        "camera_std": dict(zip(CAMERA_NAMES, _finite_or_none(sd[CAMERA_COLUMNS]), strict=True)),
+        "mirror_std": {
+            "apex_mm": _finite_or_none(sd[APEX_COLUMNS]),
+            "axis_tilt_deg": _finite_or_none(np.degrees(sd[TILT_COLUMNS])),
+        }
+        | ({"conic_constant": _finite_or_none(sd[SHAPE_COLUMN])} if float(result.masks.glob[SHAPE_COLUMN]) else {}),
+        "lasers": [
+            {
+                "working_point": None if i in held else x_ref[i].tolist(),
+                "working_range_mm": None if i in held else float(np.linalg.norm(x_ref[i])),
+                "position_std_mm": _finite_or_none(pos[i]),
+                "direction_std_deg": _finite_or_none(np.degrees(ang[i])),
+            }
+            | (
+                {"status": "undetermined: its spots cannot fix a line (held; its spots are left out)"}
+                if i in held
+                else {}
+                if np.isfinite(pos[i]) and np.isfinite(ang[i])
+                else {"status": "undetermined: its covariance is not positive (the data do not fix this laser)"}
+            )
+            for i in range(result.rig.lasers.n)
+        ],
+        "covariance": {
+            "parameters": f"camera ({', '.join(CAMERA_NAMES)}), mirror (apex dx, dy, dz mm; axis tilt "
+            "e1, e2 rad; conic constant, 0 where the shape is given), then per laser (point offset e1, e2 mm; "
+            "direction tilt e1, e2 rad) with (e1, e2) the orthonormal basis of slcvjax.support.safe.orthonormal_basis "
+            "about the axis / laser direction",
+            "matrix": cov.tolist(),
+        },
+    }
+    if result.box is not None:
+        uncertainty["rigid_box"] = _box_json(result.box)
+    return {"residuals": residuals, "uncertainty": uncertainty}
+
+
+def _box_json(box: dict) -> dict:
+    """``uncertainty.rigid_box`` of a result with the rigid box model."""
+    boards = {
+        b: {
+            "R": np.asarray(d["pose"].R).tolist(),
+            "t": np.asarray(d["pose"].t).tolist(),
+            "rotation_std_deg": _finite_or_none(d["rotation_deg"]),
+            "translation_std_mm": _finite_or_none(d["translation_mm"]),
+        }
+        for b, d in box["boards"].items()
+    }
+    return {"gauge": box["gauge"], "boards": boards} | {
+        k: box[k] for k in ("views", "free_board_poses", "left_out", "spots_restored", "notes")
+    }
+
+
+def _rig_json(rig: Rig, undetermined: tuple[int, ...] = ()) -> dict:
+    from ..observations.formats import calibration_to_json
+
+    doc = calibration_to_json(Calibration(rig, undetermined_lasers=undetermined))
+    return {k: doc[k] for k in ("camera", "mirror", "lasers")}
+
+
+def to_calibration(result: CalibrationResult, obs: Observations) -> Calibration:
+    """The ``slcv-calibration/1`` content of a result (joint solution, staged beside it)."""
+    pk = result.packed
+    board_poses: list[dict[str, Pose]] = [{} for _ in obs.views]
+    for (v, b), pose in zip(pk.pose_keys, unstack_poses(result.params.poses), strict=True):
+        board_poses[v][b] = pose
+    cvp: list[Pose | None] = [None] * len(obs.calibration_views)
+    for c, pose in zip(pk.chess_keys, unstack_poses(result.params.chess), strict=True):
+        cvp[c] = pose
+    rep = report(result, obs)
+    st = result.staged
+    stages = {
+        "staged": {
+            **_rig_json(st.rig, st.undetermined),
+            "reports": [
+                {"stage": r.name, "rms": _finite_or_none(r.rms), "unit": r.unit, "notes": r.notes} for r in st.reports
+            ],
+        },
+        "joint": {"passes": [p.to_json() for p in result.passes], "timings_s": result.timings},
+    }
+    return Calibration(result.rig, board_poses, cvp, {**rep, "stages": stages}, result.undetermined_lasers)
+
+
+def reprojections(cal: Calibration, obs: Observations, view: int, rim_points: int = 360) -> dict:
+    """The calibrated model's pixels for one catadioptric view (for plots and checks).
+
+    Returns ``{"dots": {board: (M, 2)}, "spots": (S, 2), "rim": (K, 2)}``: the board
+    points through the mirror at the view's board poses, each detected spot's laser on
+    its board's plane (NaN where the spot has no posed board or the model has no pixel)
+    and the rim curve.  Invalid model pixels are NaN.
+    """
+    rig, poses, v = cal.rig, cal.board_poses[view], obs.views[view]
+    dots = {}
+    for b in v.boards:
+        if b in poses:
+            uv, ok = project_board_points(rig, poses[b], jnp.asarray(obs.boards[b], dtype=float))
+            dots[b] = np.where(np.asarray(ok)[:, None], np.asarray(uv), np.nan)
+    spots = np.full((len(v.spots), 2), np.nan)
+    for i, s in enumerate(v.spots):
+        if s.board in poses:
+            uv, ok = project_spots(rig, poses[s.board], jnp.asarray([s.laser]))
+            if bool(ok[0]):
+                spots[i] = np.asarray(uv[0])
+    uv, ok = project_rim(rig, jnp.linspace(0.0, 2 * np.pi, rim_points, endpoint=False))
+    return {"dots": dots, "spots": spots, "rim": np.asarray(uv)[np.asarray(ok)]}
