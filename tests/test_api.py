@@ -1,4 +1,4 @@
-"""The public API: every job is a name of the package, the notebooks and the README's code use
+"""The public API: every job is a name of the package, the notebooks and the documentation's code use
 only those names, and ``import slcvjax`` loads the image, experiment and plot layers only when
 one of their names is used."""
 
@@ -63,8 +63,9 @@ def test_notebooks_use_only_the_public_api(path):
     assert used and used <= set(slcvjax.__all__), sorted(used - set(slcvjax.__all__))
 
 
-def test_the_readme_code_uses_only_the_public_api():
-    blocks = re.findall(r"```python\n(.*?)```", (ROOT / "README.md").read_text(), re.S)
+def test_the_documentation_code_uses_only_the_public_api():
+    pages = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+    blocks = [b for p in pages for b in re.findall(r"```python\n(.*?)```", p.read_text(), re.S)]
     assert blocks
     code = "\n".join(blocks)
     assert not PRIVATE_IMPORT.findall(code)

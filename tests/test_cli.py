@@ -93,3 +93,66 @@ def test_calibrate_from_a_calibration_evaluates_it_on_held_out_views(tmp_path, c
     both = ["--from", str(tmp_path / "cal.json"), "--camera", str(tmp_path / "cal.json")]
     assert cli.main(["calibrate", str(tmp_path / "held.json"), *both, "--out", str(tmp_path / "x.json")]) != 0
     assert "--camera and --from" in capsys.readouterr().err
+
+
+def _run_python(code: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+
+
+def test_help_and_version_answer_without_importing_jax():
+    """``slcvjax --help``, ``slcvjax CMD --help`` and ``--version`` parse without the library: no JAX
+    (nor ``slcvjax`` itself, which imports JAX) in ``sys.modules`` when they exit."""
+    commands = sorted(cli.build_parser()._subparsers._group_actions[0].choices)
+    code = (
+        "import sys, slcvjax_cli\n"
+        f"for argv in [['--help'], ['--version']] + [[c, '--help'] for c in {commands!r}]:\n"
+        "    try:\n"
+        "        slcvjax_cli.main(argv)\n"
+        "    except SystemExit as e:\n"
+        "        assert e.code == 0, (argv, e.code)\n"
+        "heavy = sorted(m for m in sys.modules if m.split('.')[0] in ('jax', 'jaxlib', 'slcvjax', 'numpy'))\n"
+        "print('IMPORTED', heavy)\n"
+    )
+    r = _run_python(code)
+    assert r.returncode == 0, r.stderr
+    assert "IMPORTED []" in r.stdout, r.stdout[-2000:]
+    assert len(commands) == 10
+
+
+def test_the_console_script_is_the_light_entry_point():
+    from importlib.metadata import entry_points
+
+    (script,) = [e for e in entry_points(group="console_scripts") if e.name == "slcvjax"]
+    assert script.value == "slcvjax_cli:main"
+
+
+def test_version(capsys):
+    import slcvjax
+
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["--version"])
+    assert exit_.value.code == 0
+    assert capsys.readouterr().out.strip() == f"slcvjax {slcvjax.__version__}"
+
+
+def test_the_parsers_copies_of_library_values_agree():
+    import slcvjax_cli
+    from slcvjax.observations.simulate import PAPER_HALF_WIDTH, PRESETS
+
+    assert slcvjax_cli.PRESETS == PRESETS
+    assert slcvjax_cli.PAPER_HALF_WIDTH == PAPER_HALF_WIDTH
+
+
+def test_quiet_and_verbose(tmp_path, capsys):
+    """The reports go through ``logging``: ``-q`` keeps only warnings and errors, ``-v`` adds debug lines,
+    and the default comes back after the command (for a caller in the same process)."""
+    small = ["--views", "3", "--lasers", "2"]
+    assert cli.main(["-q", "simulate", *small, "--out", str(tmp_path / "q")]) == 0
+    assert capsys.readouterr().out == ""
+    assert (tmp_path / "q" / "observations.json").exists()
+    assert cli.main(["simulate", *small, "-v", "--out", str(tmp_path / "v")]) == 0
+    out = capsys.readouterr().out
+    assert "wrote" in out and "JAX" in out and "compilation cache" in out
+    assert cli.main(["simulate", *small, "--out", str(tmp_path / "d")]) == 0
+    out = capsys.readouterr().out
+    assert "wrote" in out and "compilation cache" not in out

@@ -1,11 +1,14 @@
 """``slcvjax calibrate``: calibrate the rig from observation files or image folders."""
 
+import logging
 import sys
 import time
 from pathlib import Path
 
 from ..observations.formats import FormatError, write_calibration
 from .common import export_opencv, print_placed, print_report
+
+log = logging.getLogger(__name__)
 
 
 def _read_inputs(inputs: list[Path], progress: bool = True):
@@ -18,8 +21,8 @@ def _read_inputs(inputs: list[Path], progress: bool = True):
         if p.is_dir():
             obs, rep = detect_folder(p, progress=progress and sys.stderr.isatty())
             bad = {k: v for k, v in rep.problems.items() if v}
-            print(f"{p}: detected {len(obs.views)} catadioptric and {len(obs.calibration_views)} chessboard images"
-                  f" ({len(bad)} with something not found; `slcvjax detect` lists them)")  # fmt: skip
+            log.info(f"{p}: detected {len(obs.views)} catadioptric and {len(obs.calibration_views)} chessboard images"
+                     f" ({len(bad)} with something not found; `slcvjax detect` lists them)")  # fmt: skip
             out.append(obs)
         else:
             out.append(read_observations(p))
@@ -75,8 +78,8 @@ def run(args) -> int:
             raise FormatError("inputs: two inputs share a file name; their outputs would collide")
     for (_, cal), target in zip(results, targets, strict=True):
         write_calibration(target, cal)
-        print(f"wrote {target}")
+        log.info(f"wrote {target}")
     if args.export_opencv:
         export_opencv(args.export_opencv, results[0][1].rig.camera)
-        print(f"wrote {args.export_opencv}")
+        log.info(f"wrote {args.export_opencv}")
     return 0

@@ -1,9 +1,13 @@
 """``slcvjax camera``: calibrate a plain camera from chessboard images."""
 
+import logging
+
 import numpy as np
 
 from ..observations.formats import FormatError, write_calibration
 from .common import board_arg, export_opencv
+
+log = logging.getLogger(__name__)
 
 
 def run(args) -> int:
@@ -20,15 +24,15 @@ def run(args) -> int:
     except CalibrationError as e:
         raise FormatError(str(e)) from None
     for name, r in res.per_view_rms_px.items():
-        print(f"{name}: rms {r:.4f} px")
+        log.info(f"{name}: rms {r:.4f} px")
     if res.missing:
-        print(f"no {cols}x{rows} board found in: {', '.join(res.missing)}")
+        log.info(f"no {cols}x{rows} board found in: {', '.join(res.missing)}")
     c = res.camera
-    print(
+    log.info(
         f"fx {float(c.fx):.4f}  fy {float(c.fy):.4f}  cx {float(c.cx):.4f}  cy {float(c.cy):.4f}  "
         f"dist {np.round(np.asarray(c.dist), 6).tolist()}"
     )
-    print(f"rms {res.rms_px:.5f} px (OpenCV's calibrateCamera on the same corners: {res.opencv_rms_px:.5f} px)")
+    log.info(f"rms {res.rms_px:.5f} px (OpenCV's calibrateCamera on the same corners: {res.opencv_rms_px:.5f} px)")
     doc = Calibration(
         Rig.camera_only(c),
         extra={
@@ -41,8 +45,8 @@ def run(args) -> int:
         },
     )
     write_calibration(args.out, doc)
-    print(f"wrote {args.out}")
+    log.info(f"wrote {args.out}")
     if args.export_opencv:
         export_opencv(args.export_opencv, c)
-        print(f"wrote {args.export_opencv}")
+        log.info(f"wrote {args.export_opencv}")
     return 0

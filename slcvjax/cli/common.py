@@ -1,10 +1,13 @@
 """What several commands print and write: the calibration report, the pipe report, number formats."""
 
+import logging
 from pathlib import Path
 
 import numpy as np
 
 from ..observations.formats import FormatError, write_observations
+
+log = logging.getLogger(__name__)
 
 
 def summary(obs, truth) -> str:
@@ -37,16 +40,16 @@ def print_report(cal, name: str = "") -> None:
     """A short human-readable report of a calibration document's residuals and uncertainty."""
     res, unc = cal.extra["residuals"], cal.extra["uncertainty"]
     passes = cal.extra["stages"]["joint"]["passes"]
-    print(f"== {name}" if name else "==")
-    print(
+    log.info(f"== {name}" if name else "==")
+    log.info(
         f"rms {res['rms_px']:.3f} px   sigma {res['sigma_px']:.3f} px   dof {res['dof']}   "
         f"joint: " + ", ".join(f"{p['name'].split(':')[0]} {p['steps']} steps {p['result']}" for p in passes)
     )
-    print("per kind   " + "  ".join(f"{k} {fmt(v)}" for k, v in res["by_kind_rms_px"].items()))
-    print("per view   " + "  ".join(f"{k} {fmt(v)}" for k, v in res["per_view_rms_px"].items()))
-    print("per board  " + "  ".join(f"{k} {fmt(v)}" for k, v in res["per_board_rms_px"].items()))
+    log.info("per kind   " + "  ".join(f"{k} {fmt(v)}" for k, v in res["by_kind_rms_px"].items()))
+    log.info("per view   " + "  ".join(f"{k} {fmt(v)}" for k, v in res["per_view_rms_px"].items()))
+    log.info("per board  " + "  ".join(f"{k} {fmt(v)}" for k, v in res["per_board_rms_px"].items()))
     if res["per_laser_rms_px"]:
-        print("per laser  " + "  ".join(f"{k}: {fmt(v)}" for k, v in res["per_laser_rms_px"].items()))
+        log.info("per laser  " + "  ".join(f"{k}: {fmt(v)}" for k, v in res["per_laser_rms_px"].items()))
     out = res["outliers"]
 
     def _outlier(o):
@@ -54,7 +57,7 @@ def print_report(cal, name: str = "") -> None:
         return f"{o['kind']} {o['view']} {o['board']}{laser} {o['residual_px']:.1f} px"
 
     listed = "; ".join(_outlier(o) for o in out[:10]) + (" ..." if len(out) > 10 else "")
-    print(f"outliers   {len(out)}" + (f": {listed}" if out else ""))
+    log.info(f"outliers   {len(out)}" + (f": {listed}" if out else ""))
     fixed = res.get("repairs", [])
 
     def _repair(o):
@@ -67,25 +70,25 @@ def print_report(cal, name: str = "") -> None:
 
     if fixed:
         listed = "; ".join(_repair(o) for o in fixed[:10]) + (" ..." if len(fixed) > 10 else "")
-        print(f"repaired   {len(fixed)}: {listed}")
+        log.info(f"repaired   {len(fixed)}: {listed}")
     if res.get("rim_outliers"):
-        print(f"rim        {res['rim_outliers']} rim pixel(s) more than 5 sigma (the rim's own) off the rim")
+        log.info(f"rim        {res['rim_outliers']} rim pixel(s) more than 5 sigma (the rim's own) off the rim")
     if res["invalid"]:
-        print(f"invalid    {res['invalid']} observation(s) fall outside the model (off the mirror or the sensor)")
+        log.info(f"invalid    {res['invalid']} observation(s) fall outside the model (off the mirror or the sensor)")
     for st in cal.extra["stages"]["staged"]["reports"]:
         if st["stage"] == "mirror_kind":
-            print("mirror kind " + "; ".join(st["notes"]))
+            log.info("mirror kind " + "; ".join(st["notes"]))
     if cal.rig.camera.telecentric:
-        print(f"camera     telecentric (fx, fy in px per {cal.rig.camera.unit:g} mm; its depth is the gauge, held)")
+        log.info(f"camera     telecentric (fx, fy in px per {cal.rig.camera.unit:g} mm; its depth is the gauge, held)")
     if not unc.get("converged", True):
-        print(f"WARNING    {unc['status']}")
+        log.info(f"WARNING    {unc['status']}")
     cs = unc["camera_std"]
-    print(f"camera std fx {fmt(cs['fx'])} fy {fmt(cs['fy'])} cx {fmt(cs['cx'])} cy {fmt(cs['cy'])} px")
+    log.info(f"camera std fx {fmt(cs['fx'])} fy {fmt(cs['fy'])} cx {fmt(cs['cx'])} cy {fmt(cs['cy'])} px")
     ms = unc["mirror_std"]
     apex, tilt = (", ".join(fmt(v, 4) for v in ms[k]) for k in ("apex_mm", "axis_tilt_deg"))
-    print(f"mirror std apex [{apex}] mm  axis [{tilt}] deg")
+    log.info(f"mirror std apex [{apex}] mm  axis [{tilt}] deg")
     if "conic_constant" in ms:  # the shape estimated
-        print(
+        log.info(
             f"mirror     {cal.rig.mirror.kind}, conic constant {float(cal.rig.mirror.conic):.4f} "
             f"(std {fmt(ms['conic_constant'], 4)}), vertex radius {1.0 / float(cal.rig.mirror.curvature):g} mm held"
         )
@@ -94,15 +97,15 @@ def print_report(cal, name: str = "") -> None:
         worst = max(
             (max(v for v in d["translation_std_mm"] if v is not None) for d in box["boards"].values()), default=0.0
         )
-        print(
+        log.info(
             f"rigid box  gauge {box['gauge']}, {len(box['boards'])} boards over {box['views']} views, box poses "
             f"std <= {worst:.3g} mm, {len(box['left_out'])} board pose(s) left out (do not fit the box)"
         )
     for i, las in enumerate(unc["lasers"]):
         if las["working_range_mm"] is None:
-            print(f"laser {i:2d}   {las.get('status', 'undetermined')}")
+            log.info(f"laser {i:2d}   {las.get('status', 'undetermined')}")
             continue
-        print(
+        log.info(
             f"laser {i:2d}   std {fmt(las['position_std_mm'])} mm at {las['working_range_mm']:.0f} mm, "
             f"direction {fmt(las['direction_std_deg'])} deg" + (f"  ({las['status']})" if "status" in las else "")
         )
@@ -116,10 +119,12 @@ def print_placed(notes: list[str]) -> None:
     targets = [n for n in notes if not n.startswith(CENTROIDS_NOTE)]
     if targets:
         placed = sum("placed by the box" in n for n in targets)
-        print(f"{placed} of {len(targets)} targets the detector could not place were placed by the box's other walls")
+        log.info(
+            f"{placed} of {len(targets)} targets the detector could not place were placed by the box's other walls"
+        )
     for n in notes:
         if n.startswith(CENTROIDS_NOTE):
-            print(n)
+            log.info(n)
 
 
 def export_opencv(path, camera) -> None:
@@ -164,35 +169,35 @@ def print_points(names, views, circles) -> None:
             line += f"  diameter {c.diameter:.3f} +- {fmt(c.diameter_std)} mm  fit rms {c.rms:.3f} mm"
             if c.nearly_parallel_used:
                 line += f"  (fewer than 3 reliable points: {c.nearly_parallel_used} nearly parallel ones used)"
-        print(line)
+        log.info(line)
 
 
 def pipe_report(res, paper: bool = True) -> None:
     s = res["summary"]
-    print(
+    log.info(
         f"pipe {s['true_diameter_mm']:g} mm, {s['poses']} poses, {s['points']} points: "
         f"mean diameter {fmt(s['mean_diameter_mm'])} mm (median |error| "
         f"{fmt(s['median_abs_diameter_error_mm'])} mm, rms reported std {fmt(s['rms_diameter_std_mm'])} mm; "
         f"{s['diameters_within_two_std']} of {s['circles']} within two reported std of the truth)"
     )
-    print(
+    log.info(
         f"per-point fit error: mean {fmt(s['fit_error_mean_mm'])} mm, max {fmt(s['fit_error_max_mm'])} mm; "
         f"point error vs truth rms {fmt(s['point_error_rms_mm'])} mm (reported std rms "
         f"{fmt(s['point_std_rms_mm'])} mm, {s['nearly_parallel']} nearly parallel points left out"
         + (f", {s['off_line']} off their laser's line" if s.get("off_line") else "")
         + ")"
     )
-    print(
+    log.info(
         f"the reflected rays meet the laser lines at a median {fmt(s['median_ray_line_angle_deg'], 2)} deg: "
         "the smaller the angle, the less a pixel says about the depth along the beam"
     )
     if s["points"] and s["nearly_parallel"] > s["points"] // 2:
-        print(
+        log.info(
             f"warning: {s['nearly_parallel']} of {s['points']} points are nearly parallel to their rays given the "
             "pixel noise and the calibration's laser directions; these diameters are not reliable (see their std)"
         )
     if paper:
-        print("paper (Chen et al. 2019, real sensor): diameter 150.042 mm, fit errors < 3 mm, mean 1.5 mm")
+        log.info("paper (Chen et al. 2019, real sensor): diameter 150.042 mm, fit errors < 3 mm, mean 1.5 mm")
 
 
 def write_pipe(out: Path, res: dict, points_name: str, noise: float) -> list[str]:

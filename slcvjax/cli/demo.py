@@ -1,5 +1,6 @@
 """``slcvjax demo``: the main job on the simulated reference rig: render, detect, calibrate, measure, report."""
 
+import logging
 import sys
 import time
 from pathlib import Path
@@ -8,6 +9,8 @@ import numpy as np
 
 from ..observations.formats import write_calibration, write_observations, write_text_atomic
 from .common import fmt, pipe_report, print_placed, print_report, summary, write_pipe
+
+log = logging.getLogger(__name__)
 
 
 def run(args) -> int:
@@ -22,19 +25,19 @@ def run(args) -> int:
     images = not args.no_images
     steps = 5 if images else 4
     step = iter(range(1, steps + 1))
-    print("slcvjax demo: the simulated reference rig (paper preset)", flush=True)
-    print(f"[{next(step)}/{steps}] simulate", flush=True)
+    log.info("slcvjax demo: the simulated reference rig (paper preset)")
+    log.info(f"[{next(step)}/{steps}] simulate")
     scene = make_scene("paper", n_lasers=args.lasers, n_views=args.views)
     exact, truth = simulate(scene, noise=0.0 if images else args.noise, seed=args.seed)
     write_observations(out / "observations.json", exact)
     write_calibration(out / "truth.json", truth)
-    print(summary(exact, truth))
+    log.info(summary(exact, truth))
     timings = {}
     if images:
         from ..images.detect import detect_folder, read_image
         from ..images.render import RenderOptions, render_scene
 
-        print(f"[{next(step)}/{steps}] render the images, then detect", flush=True)
+        log.info(f"[{next(step)}/{steps}] render the images, then detect")
         t1 = time.perf_counter()
         opts = RenderOptions(noise=args.image_noise, seed=args.seed)
         render_scene(scene, out / "images", opts, progress=sys.stderr.isatty())
@@ -42,27 +45,27 @@ def run(args) -> int:
         t1 = time.perf_counter()
         obs, rep = detect_folder(out / "images", progress=sys.stderr.isatty())
         timings["detect"] = time.perf_counter() - t1
-        print(rep.summary() + " (each image's list: detection_report.txt)")
+        log.info(rep.summary() + " (each image's list: detection_report.txt)")
         write_text_atomic(out / "detection_report.txt", "\n".join(rep.lines()) + "\n")
         write_observations(out / "detected.json", obs)
         n_dots = sum(int(s.sum()) for v in obs.views for _, s in v.boards.values())
         n_spots = sum(len(v.spots) for v in obs.views)
-        print(f"detected {n_dots} dots and {n_spots} spots in {len(obs.views)} views, "
-              f"{sum(int(c.seen.sum()) for c in obs.calibration_views)} chessboard corners")  # fmt: skip
+        log.info(f"detected {n_dots} dots and {n_spots} spots in {len(obs.views)} views, "
+                 f"{sum(int(c.seen.sum()) for c in obs.calibration_views)} chessboard corners")  # fmt: skip
     else:
         obs = exact
-    print(f"[{next(step)}/{steps}] calibrate: staged, then joint (the first run compiles, about a minute)", flush=True)
+    log.info(f"[{next(step)}/{steps}] calibrate: staged, then joint (the first run compiles, about a minute)")
     t1 = time.perf_counter()
     rigid = not args.free_poses
     if rigid:
-        print("  the box's walls as one rigid box: one pose per wall, one sensor pose per view")
+        log.info("  the box's walls as one rigid box: one pose per wall, one sensor pose per view")
     res, obs, notes = calibrate_detected(obs, rigid=rigid)
     print_placed(notes)
     timings["calibration"] = time.perf_counter() - t1
     cal = to_calibration(res, obs)
     write_calibration(out / "calibration.json", cal)
     print_report(cal, "calibration")
-    print(f"[{next(step)}/{steps}] compare with the truth and the Cramer-Rao bound", flush=True)
+    log.info(f"[{next(step)}/{steps}] compare with the truth and the Cramer-Rao bound")
     # the bound at the simulated noise, or for images at each kind's noise as the calibration
     # estimated it (the detector's: spots noisier than dots, the rim's fitted edge far less)
     if images:
@@ -78,16 +81,16 @@ def run(args) -> int:
     unc = cal.extra["uncertainty"]["lasers"]
     if images:
         each = ", ".join(f"{k} {v:.3g}" for k, v in zip(KIND_NAMES, sigma, strict=True))
-        print(f"bound at each kind's noise as the calibration estimated it ({each} px)")
+        log.info(f"bound at each kind's noise as the calibration estimated it ({each} px)")
     else:
-        print(f"bound at sigma {sigma:.3f} px")
-    print("laser  error (mm, deg)    reported std (mm, deg)   bound std (mm, deg)   staged error (mm, deg)")
+        log.info(f"bound at sigma {sigma:.3f} px")
+    log.info("laser  error (mm, deg)    reported std (mm, deg)   bound std (mm, deg)   staged error (mm, deg)")
     held = list(res.undetermined_lasers)
     for i in range(len(pos)):
         if i in held:
-            print(f"{i:5d}  undetermined: its spots cannot fix a line (held; left out of the RMS below)")
+            log.info(f"{i:5d}  undetermined: its spots cannot fix a line (held; left out of the RMS below)")
             continue
-        print(
+        log.info(
             f"{i:5d}  {pos[i]:6.3f} {np.degrees(ang[i]):6.3f}     {fmt(unc[i]['position_std_mm']):>6s} "
             f"{fmt(unc[i]['direction_std_deg']):>6s}          {bound['position_std_mm'][i]:6.3f} "
             f"{np.degrees(bound['direction_std_rad'][i]):6.3f}       {pos_s[i]:7.3f} {np.degrees(ang_s[i]):6.3f}"
@@ -100,7 +103,7 @@ def run(args) -> int:
             "direction_rms_rad": float(np.sqrt(np.mean(np.square(bound["direction_std_rad"][keep])))),
         }
     rms = lambda x: float(np.sqrt(np.mean(np.square(x))))  # noqa: E731
-    print(
+    log.info(
         f"RMS    {rms(pos):6.3f} {np.degrees(rms(ang)):6.3f}     bound {bound['position_rms_mm']:.3f} "
         f"{np.degrees(bound['direction_rms_rad']):.3f}     staged {rms(pos_s):.3f} {np.degrees(rms(ang_s)):.3f}"
     )
@@ -120,8 +123,8 @@ def run(args) -> int:
     if images:
         from ..images.render import render_pipe
 
-        print(f"[{next(step)}/{steps}] measure: the sensor rendered in a 150 mm pipe at 16 poses, its spots "
-              "detected and labelled by this calibration's laser lines", flush=True)  # fmt: skip
+        log.info(f"[{next(step)}/{steps}] measure: the sensor rendered in a 150 mm pipe at 16 poses, its spots "
+                 "detected and labelled by this calibration's laser lines")  # fmt: skip
         render_pipe(pipe_sc, out / "pipe_images", opts, progress=sys.stderr.isatty())
         # the demo knows its laser's spot size (the renderer's): the centroids are corrected for it
         observed, problems = spots_from_images(
@@ -133,7 +136,7 @@ def run(args) -> int:
             undetermined=res.undetermined_lasers,
         )
         for name, probs in ((k, v) for k, v in problems.items() if v):
-            print(f"  {name}: " + "; ".join(probs))
+            log.info(f"  {name}: " + "; ".join(probs))
         pipe = pipe_experiment(
             res.rig,
             pipe_sc,
@@ -146,8 +149,8 @@ def run(args) -> int:
         )
         pixel_note = sigma_cal
     else:
-        print(f"[{next(step)}/{steps}] measure: the sensor in a 150 mm pipe at 16 poses, {args.noise:g} px, "
-              "with this calibration", flush=True)  # fmt: skip
+        log.info(f"[{next(step)}/{steps}] measure: the sensor in a 150 mm pipe at 16 poses, {args.noise:g} px, "
+                 "with this calibration")  # fmt: skip
         pipe = pipe_experiment(
             res.rig, pipe_sc, args.noise, args.seed, rig_cov=rig_cov, undetermined=res.undetermined_lasers
         )
@@ -155,7 +158,7 @@ def run(args) -> int:
     pipe_files = write_pipe(out, pipe, "pipe_points.json", pixel_note)
     pipe_report(pipe)
     timings["pipe"] = time.perf_counter() - t2
-    print(
+    log.info(
         "timings: "
         + ", ".join(f"{k} {v:.1f} s" for k, v in timings.items())
         + f" (compilation included), total {time.perf_counter() - t0:.1f} s"
@@ -163,5 +166,5 @@ def run(args) -> int:
     files = ["observations.json", "truth.json"]
     files += ["images/", "detected.json", "detection_report.txt"] if images else []
     files += ["calibration.json"] + plots + (["pipe_images/"] if images else []) + pipe_files
-    print(f"wrote {out}/ ({', '.join(files)})")
+    log.info(f"wrote {out}/ ({', '.join(files)})")
     return 0

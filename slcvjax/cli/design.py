@@ -1,11 +1,14 @@
 """``slcvjax design``: plan a calibration, or design the lasers for measuring pipes."""
 
+import logging
 import sys
 from pathlib import Path
 
 import numpy as np
 
 from .common import fmt, fmt_finite
+
+log = logging.getLogger(__name__)
 
 
 def _parse_triple(text: str, name: str) -> np.ndarray:
@@ -38,40 +41,40 @@ def run(args) -> int:
     plan = Plan.from_scene(scene, start, noise=args.noise, rotation_range=rot, translation_range=tra)
     if args.measure:
         return _design_lasers(args, plan)
-    print(
+    log.info(
         f"design: {args.views} views in a {args.box:g} mm box, motion +-{np.degrees(rot).round(2).tolist()} deg, "
         f"+-{tra.tolist()} mm, {args.noise} px (compiling the bound's gradient takes about 30 s)",
-        flush=True,
     )
     res = optimise(plan, steps=args.steps, position_weight=args.position_weight, progress=sys.stderr.isatty())
     b, a = res.predicted_before, res.predicted_after
-    print("predicted (Cramer-Rao)   position rms mm   direction rms deg   dots  spots")
+    log.info("predicted (Cramer-Rao)   position rms mm   direction rms deg   dots  spots")
     for name, x in (("before", b), ("after", a)):
-        print(f"  {name:22s} {x.position_rms_mm:15.4f}   {x.direction_rms_deg:17.4f}   {x.n_dots:4d}  {x.n_spots:5d}")
-    print(
+        log.info(
+            f"  {name:22s} {x.position_rms_mm:15.4f}   {x.direction_rms_deg:17.4f}   {x.n_dots:4d}  {x.n_spots:5d}"
+        )
+    log.info(
         f"  ratio                  {a.position_rms_mm / b.position_rms_mm:15.3f}   "
         f"{a.direction_rms_deg / b.direction_rms_deg:17.3f}   "
         f"({len(res.history) - 1} steps, {res.timings['total_s']:.1f} s)"
     )
     confirmed = None
     if args.confirm:
-        print(f"confirming by simulation: {args.confirm} calibrations of each plan (each compiles once)", flush=True)
+        log.info(f"confirming by simulation: {args.confirm} calibrations of each plan (each compiles once)")
         confirmed = {}
         for name, p in (("before", res.before), ("after", res.after)):
             confirmed[name] = confirm(p, args.confirm, args.seed, progress=sys.stderr.isatty())
             c = confirmed[name]
-            print(
+            log.info(
                 f"  {name:6s} simulated rms: position {fmt(c['position_rms_mm'], 4)} mm, direction "
                 f"{fmt(c['direction_rms_deg'], 4)} deg ({c['converged']}/{c['trials']} converged"
                 + (f", {c['failed']} could not be calibrated: {c['first_failure']}" if c["failed"] else "")
                 + ")",
-                flush=True,
             )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "design.json", design_document(res, confirmed))
     png = plot_design(res, out / "design.png")
-    print(f"wrote {out / 'design.json'}, {png}")
+    log.info(f"wrote {out / 'design.json'}, {png}")
     return 0
 
 
@@ -90,46 +93,44 @@ def _design_lasers(args, plan) -> int:
         plan, diameters, elevation_range_deg=args.elevation_range, ring_radius_range_mm=args.ring_radius_range,
         ring_z_range_mm=args.ring_z_range,
     )  # fmt: skip
-    print(
+    log.info(
         f"laser design for pipes of {', '.join(f'{x:g}' for x in diameters)} mm: elevations +-{args.elevation_range:g} "
         f"deg, ring radius +-{args.ring_radius_range:g} mm, height +-{args.ring_z_range:g} mm "
         "(compiling the prediction and its gradient takes about a minute)",
-        flush=True,
     )
     res = optimise_lasers(mp, steps=args.steps, progress=sys.stderr.isatty())
-    print("pipe mm    predicted diameter std mm (before -> after)   spots seen   smallest beam-ray angle deg")
+    log.info("pipe mm    predicted diameter std mm (before -> after)   spots seen   smallest beam-ray angle deg")
     b, a = res.predicted_before, res.predicted_after
     for k, d in enumerate(diameters):
         std_b = "not measurable" if not np.isfinite(b.diameter_std_mm[k]) else f"{b.diameter_std_mm[k]:.3f}"
         std_a = "not measurable" if not np.isfinite(a.diameter_std_mm[k]) else f"{a.diameter_std_mm[k]:.3f}"
-        print(
+        log.info(
             f"{d:7g}    {std_b:>14s} -> {std_a:<14s}                  {b.spots_seen[k]:2d} -> {a.spots_seen[k]:2d}"
             f"      {fmt_finite(b.min_angle_deg[k])} -> {fmt_finite(a.min_angle_deg[k])}"
         )
     if not res.feasible:
-        print(
+        log.info(
             "no mounting in the range sees every spot in every pipe and keeps the lasers on the calibration walls: "
             "widen the range (--ring-z-range, --elevation-range) or narrow the pipes (--diameters); "
             "the mounting that sees the most spots is written"
         )
     confirmed = None
     if args.confirm:
-        print(f"confirming by simulation: {args.confirm} calibrations of each mounting, each measuring every pipe")
+        log.info(f"confirming by simulation: {args.confirm} calibrations of each mounting, each measuring every pipe")
         confirmed = {}
         for name, rig in (("before", res.rig_before), ("after", res.rig_after)):
             c = confirm_lasers(mp, rig, args.confirm, args.seed, progress=sys.stderr.isatty())
             confirmed[name] = c
             errs = ", ".join(fmt(x) for x in c["diameter_error_rms_mm"])
-            print(
+            log.info(
                 f"  {name:6s} simulated rms diameter error mm: {errs}"
                 + (f" ({c['failed']} could not be calibrated: {c['first_failure']})" if c["failed"] else ""),
-                flush=True,
             )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "laser_design.json", laser_design_document(res, confirmed))
     png = plot_laser_design(res, out / "laser_design.png", confirmed)
-    print(f"wrote {out / 'laser_design.json'}, {png}")
+    log.info(f"wrote {out / 'laser_design.json'}, {png}")
     return 0 if res.feasible else 1
 
 

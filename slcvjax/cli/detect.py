@@ -1,9 +1,12 @@
 """``slcvjax detect``: detect spots, dots, rim and corners in an image folder."""
 
+import logging
 import sys
 import time
 
 from ..observations.formats import write_observations
+
+log = logging.getLogger(__name__)
 
 
 def run(args) -> int:
@@ -12,12 +15,12 @@ def run(args) -> int:
     t0 = time.perf_counter()
     obs, rep = detect_folder(args.folder, progress=sys.stderr.isatty())
     for line in rep.lines():
-        print(line)
+        log.info(line)
     write_observations(args.out, obs)
     n_dots = sum(int(s.sum()) for v in obs.views for _, s in v.boards.values())
     n_spots = sum(len(v.spots) for v in obs.views)
     n_corners = sum(int(c.seen.sum()) for c in obs.calibration_views)
-    print(
+    log.info(
         f"{n_dots} dots, {n_spots} spots, {sum(len(v.rim) for v in obs.views)} rim pixels, {n_corners} corners; "
         f"wrote {args.out} ({time.perf_counter() - t0:.1f} s)"
     )

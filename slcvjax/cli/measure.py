@@ -1,10 +1,13 @@
 """``slcvjax measure``: 3D laser points (and pipe circles) from spots with a calibration."""
 
+import logging
 from pathlib import Path
 
 import numpy as np
 
 from .common import print_points
+
+log = logging.getLogger(__name__)
 
 
 def _parse_axis(text: str | None):
@@ -36,10 +39,10 @@ def run(args) -> int:
         )
         bad = {k: v for k, v in problems.items() if v}
         n = sum(len(v.spots) for v in obs.views)
-        print(f"{args.input}: {n} spots in {len(obs.views)} images, labelled by the calibration's laser lines"
-              + (f", centroids corrected for a {args.spot_mm:g} mm spot" if args.spot_mm else ""))  # fmt: skip
+        log.info(f"{args.input}: {n} spots in {len(obs.views)} images, labelled by the calibration's laser lines"
+                 + (f", centroids corrected for a {args.spot_mm:g} mm spot" if args.spot_mm else ""))  # fmt: skip
         for name, probs in bad.items():
-            print(f"  {name}: " + "; ".join(probs))
+            log.info(f"  {name}: " + "; ".join(probs))
     else:
         obs = read_observations(args.input)
     if obs.n_lasers != cal.rig.lasers.n:
@@ -50,7 +53,7 @@ def run(args) -> int:
     axis = _parse_axis(args.axis)
     if cal.undetermined_lasers:
         held = ", ".join(map(str, cal.undetermined_lasers))
-        print(f"{args.calibration}: laser(s) {held} undetermined (the data did not fix their lines): no points")
+        log.info(f"{args.calibration}: laser(s) {held} undetermined (the data did not fix their lines): no points")
     views = measure_observations(cal.rig, obs, sigma, cov, cal.undetermined_lasers)
     names = [v.name for v in obs.views]
     circles = None
@@ -65,6 +68,6 @@ def run(args) -> int:
     doc = points_document(names, views, circles, axis if args.fit_circle else None, meta)
     write_json_atomic(args.out, doc)
     print_points(names, views, circles)
-    print(f"pixel sigma {sigma:.3f} px; uncertainty from {meta['uncertainty']}")
-    print(f"wrote {args.out}")
+    log.info(f"pixel sigma {sigma:.3f} px; uncertainty from {meta['uncertainty']}")
+    log.info(f"wrote {args.out}")
     return 0

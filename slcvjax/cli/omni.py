@@ -1,10 +1,13 @@
 """``slcvjax omni``: calibrate a catadioptric camera from chessboard images seen through its mirror."""
 
+import logging
 import time
 from pathlib import Path
 
 from ..observations.formats import FormatError, write_calibration, write_observations
 from .common import board_arg, print_report
+
+log = logging.getLogger(__name__)
 
 
 def run(args) -> int:
@@ -24,12 +27,12 @@ def run(args) -> int:
         args.images, pattern, args.square, shape, "telecentric" if args.telecentric else args.projection
     )
     n = len(obs.views)
-    print(f"{n} of {len(args.images)} images show the {pattern[0]}x{pattern[1]} board")
+    log.info(f"{n} of {len(args.images)} images show the {pattern[0]}x{pattern[1]} board")
     if missing:
-        print(f"no board found in: {', '.join(missing)}")
+        log.info(f"no board found in: {', '.join(missing)}")
     if args.observations:
         write_observations(args.observations, obs)
-        print(f"wrote {args.observations}")
+        log.info(f"wrote {args.observations}")
     t0 = time.perf_counter()
     try:
         res = calibrate(obs, loss=args.loss)
@@ -39,8 +42,8 @@ def run(args) -> int:
     cal.extra["images_without_board"] = missing
     print_report(cal, f"{n} views through the mirror ({time.perf_counter() - t0:.1f} s)")
     write_calibration(args.out, cal)
-    print(f"wrote {args.out}")
+    log.info(f"wrote {args.out}")
     if not args.no_plot:
         out = Path(args.plot) if args.plot else Path(args.out).with_name(Path(args.out).stem + "_residuals.png")
-        print(f"wrote {plot_residuals(args.images, cal, obs, out)}")
+        log.info(f"wrote {plot_residuals(args.images, cal, obs, out)}")
     return 0

@@ -1,11 +1,14 @@
 """``slcvjax simulate``: simulate a rig's observations (and render them) with the truth beside them."""
 
+import logging
 import sys
 import time
 from pathlib import Path
 
 from ..observations.formats import write_calibration, write_observations
 from .common import summary
+
+log = logging.getLogger(__name__)
 
 
 def run(args) -> int:
@@ -19,15 +22,15 @@ def run(args) -> int:
     out = Path(args.out)
     write_observations(out / "observations.json", obs)
     write_calibration(out / "truth.json", truth)
-    print(summary(obs, truth))
-    print(f"wrote {out / 'observations.json'} and {out / 'truth.json'} ({time.perf_counter() - t0:.1f} s)")
+    log.info(summary(obs, truth))
+    log.info(f"wrote {out / 'observations.json'} and {out / 'truth.json'} ({time.perf_counter() - t0:.1f} s)")
     if args.render:
         from ..images.render import render_scene
 
         opts = _render_options(args)
         t1 = time.perf_counter()
         files = render_scene(scene, out / "images", opts, progress=sys.stderr.isatty())
-        print(f"wrote {len(files)} images and {out / 'images' / 'setup.json'} ({time.perf_counter() - t1:.1f} s)")
+        log.info(f"wrote {len(files)} images and {out / 'images' / 'setup.json'} ({time.perf_counter() - t1:.1f} s)")
     return 0
 
 
@@ -50,13 +53,13 @@ def _simulate_pipe(args) -> int:
     out = Path(args.out)
     write_observations(out / "pipe_observations.json", obs)
     n = sum(len(v.spots) for v in obs.views)
-    print(f"pipe {args.pipe:g} mm, {len(obs.views)} poses, {n} spots; the pipe's truth in its simulation.pipe")
-    print(f"wrote {out / 'pipe_observations.json'} ({time.perf_counter() - t0:.1f} s)")
+    log.info(f"pipe {args.pipe:g} mm, {len(obs.views)} poses, {n} spots; the pipe's truth in its simulation.pipe")
+    log.info(f"wrote {out / 'pipe_observations.json'} ({time.perf_counter() - t0:.1f} s)")
     if args.render:
         from ..images.render import render_pipe
 
         opts = _render_options(args)
         t1 = time.perf_counter()
         files = render_pipe(scene, out / "pipe_images", opts, progress=sys.stderr.isatty())
-        print(f"wrote {len(files)} images in {out / 'pipe_images'} ({time.perf_counter() - t1:.1f} s)")
+        log.info(f"wrote {len(files)} images in {out / 'pipe_images'} ({time.perf_counter() - t1:.1f} s)")
     return 0

@@ -1,6 +1,9 @@
 """``slcvjax sweep``: the noise-sensitivity sweep: Monte Carlo calibrations beside the bound."""
 
+import logging
 import sys
+
+log = logging.getLogger(__name__)
 
 
 def _parse_levels(text: str) -> tuple[float, ...]:
@@ -19,26 +22,25 @@ def run(args) -> int:
     levels = _parse_levels(args.noise)
     batch = resolve_batch(args.batch)
 
-    print(
+    log.info(
         f"sweep: preset {args.preset}, noise {list(levels)} px, {args.trials} trials per level, "
         f"{args.lasers} lasers, {args.views} views; {batch} over the trials on {len(jax.devices())} "
         f"{jax.default_backend()} device(s) (with an empty compilation cache the first calibrations "
         "wait for it: 15 s on 2 CPU cores)",
-        flush=True,
     )
     doc = run_sweep(
         args.preset, levels, args.trials, args.seed, args.lasers, args.views, progress=sys.stderr.isatty(), batch=batch
     )
     m = doc["methods"]
-    print("noise px   joint pos mm  dir deg   bound pos mm  dir deg   staged pos mm  dir deg")
+    log.info("noise px   joint pos mm  dir deg   bound pos mm  dir deg   staged pos mm  dir deg")
     for i, s in enumerate(doc["noise"]):
-        print(
+        log.info(
             f"{s:8.3f}   {m['joint']['position_rms_mm'][i]:10.4f} {m['joint']['direction_rms_deg'][i]:8.4f}"
             f"   {m['bound']['position_rms_mm'][i]:10.4f} {m['bound']['direction_rms_deg'][i]:8.4f}"
             f"   {m['staged']['position_rms_mm'][i]:11.4f} {m['staged']['direction_rms_deg'][i]:8.4f}"
         )
     n = len(doc["trials_detail"])
-    print(f"{doc['converged']} of {n} joint calibrations converged; {doc['seconds']:.1f} s")
+    log.info(f"{doc['converged']} of {n} joint calibrations converged; {doc['seconds']:.1f} s")
     files = write_sweep(doc, args.out)
-    print(f"wrote {', '.join(str(f) for f in files)}")
+    log.info(f"wrote {', '.join(str(f) for f in files)}")
     return 0
