@@ -18,7 +18,8 @@ Nine calibrations of simulated scenes that exercise the whole schedule (not only
 
 For each: the SHA-256 of every parameter and covariance array (their bytes), the passes (name,
 steps, outcome, limit, notes, costs, scale), the repairs, the per-kind noise, and the SHA-256 of
-the report and of the calibration file (``to_calibration``; its timings left out), with a few
+the report and of the calibration file (``to_calibration``; its timings and the problem it
+carries left out), with a few
 readable figures beside them.  The Cramer-Rao bound of scene 1 is fingerprinted too.
 """
 
@@ -85,6 +86,7 @@ def fingerprint(res, obs) -> dict:
     rep = report(res, obs)
     cal = calibration_to_json(to_calibration(res, obs))
     cal["stages"]["joint"].pop("timings_s", None)
+    cal.pop("problem", None)  # the problem the file carries (its content: the fingerprints above)
     return {
         "params": _sha(*jax.tree_util.tree_leaves(res.params)),
         "cov": _sha(res.cov.glob, res.cov.blocks, res.cov.sigma, res.cov.dof),

@@ -47,6 +47,7 @@ from .calibration.model_selection import held_out_rms  # noqa: E402
 from .calibration.report import report, reprojections, to_calibration  # noqa: E402
 from .calibration.result import CalibrationResult, require_determined  # noqa: E402
 from .calibration.staged import Staged, staged  # noqa: E402
+from .calibration.stored import load_result  # noqa: E402
 from .geometry.camera import (  # noqa: E402
     Camera,
     distort,
@@ -232,6 +233,7 @@ __all__ = [
     "laser_std",
     "laser_working_points",
     "line_plane_intersection",
+    "load_result",
     "make_scene",
     "measure_spots",
     "measurement_inputs",

@@ -132,6 +132,7 @@ CALIBRATION = [
     "rigid_pass",
     "bound",
     "implicit",
+    "stored",
     "report",
     "model_selection",
     "calibrate",

@@ -1,5 +1,7 @@
 """A calibration's report and file content: residuals, uncertainty, stages, reprojections."""
 
+import dataclasses
+
 import jax.numpy as jnp
 import numpy as np
 
@@ -21,6 +23,7 @@ from ..support.safe import std_of_variance
 from .bound import laser_std, laser_working_points
 from .evaluate import per_observation
 from .result import CalibrationResult
+from .stored import problem_json
 
 
 def _obs_table(result: CalibrationResult):
@@ -61,8 +64,20 @@ def _rms(x):
     return float(np.sqrt(np.mean(np.square(x)))) if len(x) else None
 
 
-def report(result: CalibrationResult, obs: Observations) -> dict:
-    """The ``residuals`` and ``uncertainty`` sections of the output (plain JSON types)."""
+def _observations(result: CalibrationResult, obs: Observations | None) -> Observations:
+    """``obs``, else the observations the result was calibrated from."""
+    obs = result.observations if obs is None else obs
+    if obs is None:
+        raise ValueError("the result carries no observations: pass the observations it was calibrated from")
+    return obs
+
+
+def report(result: CalibrationResult, obs: Observations | None = None) -> dict:
+    """The ``residuals`` and ``uncertainty`` sections of the output (plain JSON types).
+
+    ``obs``: the observations the result was calibrated from, which name its views, boards and
+    lasers (default: those the result carries, ``result.observations``)."""
+    obs = _observations(result, obs)
     norm, kind, ok, view, board, laser, index = _obs_table(result)
     sigma = float(result.cov.sigma)
     point = (kind == Kind.DOT) | (kind == Kind.SPOT)
@@ -182,8 +197,11 @@ def _rig_json(rig: Rig, undetermined: tuple[int, ...] = ()) -> dict:
     return {k: doc[k] for k in ("camera", "mirror", "lasers")}
 
 
-def to_calibration(result: CalibrationResult, obs: Observations) -> Calibration:
-    """The ``slcv-calibration/1`` content of a result (joint solution, staged beside it)."""
+def to_calibration(result: CalibrationResult, obs: Observations | None = None) -> Calibration:
+    """The ``slcv-calibration/1`` content of a result: the joint solution, its report, the staged
+    result beside it, and the problem it solved (``problem``: :mod:`slcvjax.calibration.stored`;
+    :func:`slcvjax.calibration.stored.load_result` reads it back).  ``obs``: as :func:`report`'s."""
+    obs = _observations(result, obs)
     pk = result.packed
     board_poses: list[dict[str, Pose]] = [{} for _ in obs.views]
     for (v, b), pose in zip(pk.pose_keys, unstack_poses(result.params.poses), strict=True):
@@ -202,7 +220,10 @@ def to_calibration(result: CalibrationResult, obs: Observations) -> Calibration:
         },
         "joint": {"passes": [p.to_json() for p in result.passes], "timings_s": result.timings},
     }
-    return Calibration(result.rig, board_poses, cvp, {**rep, "stages": stages}, result.undetermined_lasers)
+    if result.observations is None:
+        result = dataclasses.replace(result, observations=obs)
+    extra = {**rep, "stages": stages, "problem": problem_json(result)}
+    return Calibration(result.rig, board_poses, cvp, extra, result.undetermined_lasers)
 
 
 def reprojections(cal: Calibration, obs: Observations, view: int, rim_points: int = 360) -> dict:

@@ -3,6 +3,7 @@
 from dataclasses import dataclass, field
 
 from ..geometry.rig import Rig
+from ..observations.formats import Observations
 from ..observations.problem import Packed
 from .base import CalibrationError
 from .covariance import Covariance
@@ -80,6 +81,8 @@ class CalibrationResult:
     box: dict | None = None  # the rigid box model's boards, where it was used (see :func:`rigid_refine`)
     # lasers whose spots cannot fix a line: held at a placeholder, their spots left out (fit_lasers)
     undetermined_lasers: tuple[int, ...] = ()
+    # the observations as given (the report names views, boards and lasers by them)
+    observations: Observations | None = None
 
     @property
     def rig(self) -> Rig:

@@ -171,6 +171,7 @@ class _Lockstep:
             dict(zip(KIND_NAMES, noise.sigma.tolist(), strict=True)),
             tr.repairs,
             undetermined_lasers=tr.undetermined,
+            observations=tr.obs,
         )
 
 

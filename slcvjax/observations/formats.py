@@ -281,7 +281,17 @@ def read_sensor_fields(ctx: _Ctx, doc: Any) -> tuple[tuple[int, int], float, flo
 
 def read_observations(path: str | os.PathLike) -> Observations:
     """Read and validate a ``slcv-observations/1`` file (raises :class:`FormatError`)."""
-    ctx, doc = load_json(path)
+    return _observations_of(*load_json(path))
+
+
+def observations_from_json(doc: Any, source: str) -> Observations:
+    """The :class:`Observations` of a ``slcv-observations/1`` document already parsed (``source``
+    names it in errors, e.g. ``"cal.json: problem.observations"``); validated as
+    :func:`read_observations` validates a file."""
+    return _observations_of(_Ctx(source), doc)
+
+
+def _observations_of(ctx: _Ctx, doc: Any) -> Observations:
     _check_format(ctx, doc, OBSERVATIONS_FORMAT)
     units = ctx.get(doc, "units", "", str, optional=True)
     if units is not None and units != "mm":
@@ -490,7 +500,16 @@ def read_calibration(path: str | os.PathLike) -> Calibration:
     A file with a camera only (from ``slcvjax camera``) gives a rig whose
     mirror and lasers are absent: ``rig.mirror`` is None and ``rig.lasers`` has 0 lines.
     """
-    ctx, doc = load_json(path)
+    return _calibration_of(*load_json(path))
+
+
+def calibration_from_json(doc: Any, source: str) -> Calibration:
+    """The :class:`Calibration` of a ``slcv-calibration/1`` document already parsed (``source``
+    names it in errors); validated as :func:`read_calibration` validates a file."""
+    return _calibration_of(_Ctx(source), doc)
+
+
+def _calibration_of(ctx: _Ctx, doc: Any) -> Calibration:
     _check_format(ctx, doc, CALIBRATION_FORMAT)
     c = ctx.get(doc, "camera", "", dict)
     w = ctx.integer(ctx.get(c, "width", "camera"), "camera.width", lo=1)
