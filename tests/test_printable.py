@@ -146,7 +146,7 @@ def test_the_charuco_pdf_is_detected_at_its_true_size(tmp_path):
     assert sorted(np.ravel(ci).tolist()) == list(range(24))  # every corner, id j = point j
     cc, ci = cc.reshape(-1, 2), np.ravel(ci)
     want = _page_pixels(plan, charuco_points((7, 5), 20.0), dpi)
-    np.testing.assert_allclose(cc, want[ci], atol=0.25)  # 0.03 mm
+    np.testing.assert_allclose(cc, want[ci], atol=0.15)  # 0.02 mm (found: 0.05 px)
     # the spacing of neighbouring corners: 20 mm at 200 dpi
     order = np.argsort(ci)
     grid = cc[order].reshape(4, 6, 2)
@@ -164,7 +164,7 @@ def test_the_aprilgrid_and_chessboard_pdfs_are_detected_at_their_points(tmp_path
     want = _page_pixels(plan, aprilgrid_points(3, 2, 20.0, 0.3), dpi)
     corners = aprilgrid_tag_corners(3, 2)
     for mid, c in found.items():
-        np.testing.assert_allclose(c, want[corners[mid - 5][[1, 0, 3, 2]]], atol=0.3)
+        np.testing.assert_allclose(c, want[corners[mid - 5][[1, 0, 3, 2]]], atol=0.15)
 
     spec = {"type": "chessboard", "inner": [9, 6], "square_mm": 20.0}
     page, plan, _ = board_page("chess", spec, chessboard_points(9, 6, 20.0))
