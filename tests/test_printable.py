@@ -6,6 +6,7 @@ import json
 import re
 import shutil
 import subprocess
+import zlib
 
 import cv2
 import numpy as np
@@ -13,7 +14,7 @@ import pytest
 
 from slcvjax.cli import main
 from slcvjax.images.detect import read_setup
-from slcvjax.images.printable import PT_PER_MM, board_drawing, board_page, plan_page, rasterize
+from slcvjax.images.printable import PT_PER_MM, board_drawing, board_page, pdf_bytes, plan_page, rasterize, write_pdf
 from slcvjax.images.targetbox import box_setup, mirror_band_z
 from slcvjax.observations.targets import (
     aprilgrid_points,
@@ -38,16 +39,66 @@ def _media_box(pdf: bytes) -> list[float]:
     return [float(v) for v in re.search(rb"/MediaBox \[([^\]]+)\]", pdf).group(1).split()]
 
 
+def _content(pdf: bytes) -> bytes:
+    """The PDF's streams inflated (matplotlib's PDF backend compresses them with Flate)."""
+    return b"\n".join(
+        zlib.decompressobj().decompress(m.group(1)) for m in re.finditer(rb"stream\r?\n(.*?)endstream", pdf, re.S)
+    )
+
+
+def _painted_rects(content: bytes) -> list[tuple[str, list[float]]]:
+    """Every path painted on its own that is one axis-aligned rectangle (``m l l l [l] h`` or ``re``),
+    with its paint operator: ``(op, [x, y, w, h])`` in points, x and y its corner of least x and y."""
+    content = re.sub(rb"BT\b.*?\bET", b"", content, flags=re.S)  # no text: its strings are not operators
+    out, subpaths, nums = [], [], []
+    for tok in content.split():
+        try:
+            nums.append(float(tok))
+            continue
+        except ValueError:
+            pass
+        if tok == b"m":
+            subpaths.append([nums[-2:]])
+        elif tok == b"l":
+            subpaths[-1].append(nums[-2:])
+        elif tok == b"re":
+            x, y, w, h = nums[-4:]
+            subpaths.append([[x, y], [x + w, y], [x + w, y + h], [x, y + h]])
+        elif tok in (b"f", b"f*", b"S", b"B", b"B*", b"n"):
+            if len(subpaths) == 1:
+                p = np.array(subpaths[0])
+                if len(p) == 5 and np.allclose(p[4], p[0], atol=1e-9):
+                    p = p[:4]  # a stroked path closed by its first point again
+                lo, hi = p.min(axis=0), p.max(axis=0)
+                on_edges = np.all(np.isclose(p, lo, atol=1e-9) | np.isclose(p, hi, atol=1e-9), axis=1)
+                if len(p) == 4 and on_edges.all() and len({tuple(q) for q in np.round(p, 9)}) == 4:
+                    out.append((tok.decode(), [*lo, *(hi - lo)]))
+            subpaths = []
+        nums = []
+    return out
+
+
 def _scale_bar_ops(pdf: bytes) -> list[list[float]]:
-    """The rectangles between the page's scale bar comments, in points: [x, y, w, h] each."""
-    text = pdf.decode("latin-1")
-    block = text[text.index("% scale bar 100 mm") : text.index("% end of scale bar")]
-    return [[float(v) for v in m.groups()] for m in re.finditer(r"(\S+) (\S+) (\S+) (\S+) re [fS]", block)]
+    """The scale bar's rectangles in points, [x, y, w, h] each: its outline (the page's only stroked
+    rectangle) first, then the filled rectangles inside it, left to right."""
+    rects = _painted_rects(_content(pdf))
+    (outline,) = [r for op, r in rects if op == "S"]
+    x, y, w, h = outline
+    inside = [
+        r
+        for op, r in rects
+        if op == "f"
+        and r[0] >= x - 1e-6
+        and r[0] + r[2] <= x + w + 1e-6
+        and r[1] >= y - 1e-6
+        and r[1] + r[3] <= y + h + 1e-6
+    ]
+    return [outline, *sorted(inside)]
 
 
 def test_page_size_and_scale_bar_in_points():
-    page, plan, _ = board_page("wall0", CHARUCO, charuco_points((7, 5), 20.0))
-    pdf = page.to_bytes()
+    fig, plan, _ = board_page("wall0", CHARUCO, charuco_points((7, 5), 20.0))
+    pdf = pdf_bytes(fig)
     assert plan.paper == "A4" and not plan.landscape
     np.testing.assert_allclose(_media_box(pdf), [0, 0, 210 * 72 / 25.4, 297 * 72 / 25.4], atol=1e-4)
     rects = _scale_bar_ops(pdf)
@@ -56,7 +107,9 @@ def test_page_size_and_scale_bar_in_points():
     assert len(segments) == 5 and all(s[2] == pytest.approx(10 * 72 / 25.4, abs=2e-4) for s in segments)
     # the segments alternate along the bar: starts 20 mm apart from its left end
     np.testing.assert_allclose([s[0] - outline[0] for s in segments], np.arange(5) * 20 * PT_PER_MM, atol=2e-4)
-    assert b"wall0: charuco DICT_4X4_250, 7 x 5 squares of 20 mm, markers 15 mm, ids 17..33" in pdf
+    assert b"(wall0: charuco DICT_4X4_250, 7 x 5 squares of 20 mm, markers 15 mm, ids 17..33)" in _content(pdf)
+    assert b"/BaseFont /Helvetica" in pdf and b"CreationDate" not in pdf
+    assert pdf_bytes(board_page("wall0", CHARUCO, charuco_points((7, 5), 20.0))[0]) == pdf  # the same bytes again
 
 
 @pytest.mark.parametrize(
@@ -134,8 +187,8 @@ def _page_pixels(plan, xy, dpi):
 
 @pytest.mark.skipif(PDFTOCAIRO is None, reason="pdftocairo (poppler-utils) is not installed")
 def test_the_charuco_pdf_is_detected_at_its_true_size(tmp_path):
-    page, plan, _ = board_page("wall0", CHARUCO, charuco_points((7, 5), 20.0))
-    page.write(tmp_path / "wall0.pdf")
+    fig, plan, _ = board_page("wall0", CHARUCO, charuco_points((7, 5), 20.0))
+    write_pdf(fig, tmp_path / "wall0.pdf")
     dpi = 200
     img = _render(tmp_path / "wall0.pdf", dpi, tmp_path)
     assert img.shape == (round(297 / 25.4 * dpi), round(210 / 25.4 * dpi))
@@ -157,8 +210,8 @@ def test_the_charuco_pdf_is_detected_at_its_true_size(tmp_path):
 @pytest.mark.skipif(PDFTOCAIRO is None, reason="pdftocairo (poppler-utils) is not installed")
 def test_the_aprilgrid_and_chessboard_pdfs_are_detected_at_their_points(tmp_path):
     dpi = 200
-    page, plan, _ = board_page("g", APRILGRID, aprilgrid_points(3, 2, 20.0, 0.3))
-    page.write(tmp_path / "g.pdf")
+    fig, plan, _ = board_page("g", APRILGRID, aprilgrid_points(3, 2, 20.0, 0.3))
+    write_pdf(fig, tmp_path / "g.pdf")
     found = _aruco_corners(_render(tmp_path / "g.pdf", dpi, tmp_path), "DICT_APRILTAG_36h11")
     assert sorted(found) == list(range(5, 11))
     want = _page_pixels(plan, aprilgrid_points(3, 2, 20.0, 0.3), dpi)
@@ -167,8 +220,8 @@ def test_the_aprilgrid_and_chessboard_pdfs_are_detected_at_their_points(tmp_path
         np.testing.assert_allclose(c, want[corners[mid - 5][[1, 0, 3, 2]]], atol=0.15)
 
     spec = {"type": "chessboard", "inner": [9, 6], "square_mm": 20.0}
-    page, plan, _ = board_page("chess", spec, chessboard_points(9, 6, 20.0))
-    page.write(tmp_path / "chess.pdf")
+    fig, plan, _ = board_page("chess", spec, chessboard_points(9, 6, 20.0))
+    write_pdf(fig, tmp_path / "chess.pdf")
     img = _render(tmp_path / "chess.pdf", dpi, tmp_path)
     ok, corners = cv2.findChessboardCorners(img, (9, 6))
     assert ok
@@ -259,8 +312,8 @@ def test_setup_init_then_target(tmp_path, capsys):
     for name in ["wall0", "wall1", "wall2", "wall3", "chess"]:
         pdf = (out / f"{name}.pdf").read_bytes()
         assert pdf.startswith(b"%PDF-1.4") and pdf.rstrip().endswith(b"%%EOF")
-        assert f"{name}: ".encode() in pdf
-    assert b"ids 36..47" in (out / "wall3.pdf").read_bytes()
+        assert f"({name}: ".encode() in _content(pdf)
+    assert b"ids 36..47" in _content((out / "wall3.pdf").read_bytes())
     sheet = (out / "build_sheet.md").read_text()
     assert "wall2.pdf" in sheet and "azimuth 180 deg" in sheet and (out / "build_sheet.png").stat().st_size > 1000
     for target in ("aprilgrid-box", "dots-box"):

@@ -4,8 +4,9 @@ Each board is first drawn in its own frame (:func:`board_drawing`: black rectang
 in millimetres, the frame of :mod:`slcvjax.observations.targets`), then placed on a page
 (:func:`plan_page`: the smallest ISO A page, A4 to A0, either way round, that holds the board,
 its caption and a 100 mm scale bar inside 12 mm margins; a custom page beyond A0) and written
-as a one-page PDF by a small writer of our own (:class:`PdfPage`): vector rectangles, so the
-print is exact at any printer resolution, one unit being 1/72 inch (1 mm = 72 / 25.4 pt).
+as a one-page PDF by matplotlib's PDF backend (:func:`board_page`, :func:`write_pdf`): a figure
+of the page's size, one axes over all of it in page millimetres, the board one filled vector
+path, so the print is exact at any printer resolution (1 mm = 72 / 25.4 pt in the PDF).
 
 - chessboard: ``(cols + 1) x (rows + 1)`` squares, the top-left one black;
 - charuco: OpenCV's layout (:func:`~slcvjax.observations.targets.charuco_marker_squares`), each
@@ -194,155 +195,162 @@ def plan_page(drawing: Drawing) -> PagePlan:
     return PagePlan(paper, landscape, (pw, ph), corner, drawing.extent, drawing.y_up, bar)
 
 
-class PdfPage:
-    """A one-page PDF of vector shapes and Helvetica text, coordinates in mm from the bottom-left.
-
-    The content stream is left uncompressed (plain PDF operators, the numbers in points with
-    four decimals: 1e-4 pt = 0.035 um), so the page can be read back by a test.
-    """
-
-    def __init__(self, width_mm: float, height_mm: float):
-        self.size_pt = (width_mm * PT_PER_MM, height_mm * PT_PER_MM)
-        self.ops: list[str] = []
-
-    @staticmethod
-    def _n(v: float) -> str:
-        s = f"{v * PT_PER_MM:.4f}".rstrip("0").rstrip(".")
-        return "0" if s in ("-0", "") else s
-
-    def comment(self, text: str) -> None:
-        self.ops.append(f"% {text}")
-
-    def rect(self, x: float, y: float, w: float, h: float, fill: bool = True, line_mm: float = 0.25) -> None:
-        n = self._n
-        if fill:
-            self.ops.append(f"{n(x)} {n(y)} {n(w)} {n(h)} re f")
-        else:
-            self.ops.append(f"{n(line_mm)} w {n(x)} {n(y)} {n(w)} {n(h)} re S")
-
-    def line(self, x0: float, y0: float, x1: float, y1: float, line_mm: float = 0.25) -> None:
-        n = self._n
-        self.ops.append(f"{n(line_mm)} w {n(x0)} {n(y0)} m {n(x1)} {n(y1)} l S")
-
-    def polygon(self, xy: np.ndarray) -> None:
-        n = self._n
-        pts = [f"{n(x)} {n(y)}" for x, y in xy]
-        self.ops.append(f"{pts[0]} m " + " ".join(f"{p} l" for p in pts[1:]) + " h f")
-
-    def disc(self, x: float, y: float, r: float) -> None:
-        k = 0.5522847498 * r  # four cubic Beziers: a circle to 0.03 % of r
-        n = self._n
-        c = [
-            f"{n(x + r)} {n(y)} m",
-            f"{n(x + r)} {n(y + k)} {n(x + k)} {n(y + r)} {n(x)} {n(y + r)} c",
-            f"{n(x - k)} {n(y + r)} {n(x - r)} {n(y + k)} {n(x - r)} {n(y)} c",
-            f"{n(x - r)} {n(y - k)} {n(x - k)} {n(y - r)} {n(x)} {n(y - r)} c",
-            f"{n(x + k)} {n(y - r)} {n(x + r)} {n(y - k)} {n(x + r)} {n(y)} c f",
-        ]
-        self.ops.append(" ".join(c))
-
-    def text(self, x: float, y: float, s: str, size_pt: float = 8.0) -> None:
-        s = s.encode("ascii", "replace").decode("ascii")
-        s = s.replace("\\", "\\\\").replace("(", "\\(").replace(")", "\\)")
-        self.ops.append(f"BT /F1 {size_pt:g} Tf {self._n(x)} {self._n(y)} Td ({s}) Tj ET")
-
-    def to_bytes(self) -> bytes:
-        content = ("0 g 0 G\n" + "\n".join(self.ops) + "\n").encode("ascii")
-        w, h = (f"{v:.4f}".rstrip("0").rstrip(".") for v in self.size_pt)
-        objs = [
-            b"<< /Type /Catalog /Pages 2 0 R >>",
-            b"<< /Type /Pages /Kids [3 0 R] /Count 1 >>",
-            f"<< /Type /Page /Parent 2 0 R /MediaBox [0 0 {w} {h}] /Contents 4 0 R "
-            f"/Resources << /Font << /F1 5 0 R >> >> >>".encode(),
-            f"<< /Length {len(content)} >>\nstream\n".encode() + content + b"endstream",
-            b"<< /Type /Font /Subtype /Type1 /BaseFont /Helvetica /Encoding /WinAnsiEncoding >>",
-        ]
-        out = bytearray(b"%PDF-1.4\n%\xe2\xe3\xcf\xd3\n")
-        offsets = []
-        for i, body in enumerate(objs, start=1):
-            offsets.append(len(out))
-            out += f"{i} 0 obj\n".encode() + body + b"\nendobj\n"
-        xref = len(out)
-        out += f"xref\n0 {len(objs) + 1}\n0000000000 65535 f \n".encode()
-        out += b"".join(f"{o:010d} 00000 n \n".encode() for o in offsets)
-        out += f"trailer\n<< /Size {len(objs) + 1} /Root 1 0 R >>\nstartxref\n{xref}\n%%EOF\n".encode()
-        return bytes(out)
-
-    def write(self, path: str | os.PathLike) -> None:
-        """Write the PDF atomically (a temporary file beside it, then renamed)."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-        try:
-            with os.fdopen(fd, "wb") as f:
-                f.write(self.to_bytes())
-            os.replace(tmp, path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
+# matplotlib's own defaults (a user's matplotlibrc may set usetex, a tight bbox, another PDF font
+# type), then Helvetica as one of the PDF's 14 standard fonts (not embedded, each string written
+# whole) and compressed content streams
+_PDF_RC = {"pdf.use14corefonts": True, "pdf.compression": 6}
+_FONT, _WEIGHT = "Helvetica", "medium"  # the weight Helvetica.afm declares
 
 
-def _arrow(page: PdfPage, start: np.ndarray, direction: np.ndarray, length: float, label: str) -> None:
+def _mpl_context():
+    """The rcParams the page is built and written under (see ``_PDF_RC``)."""
+    import contextlib
+
+    from matplotlib import rc_context, style
+
+    stack = contextlib.ExitStack()
+    stack.enter_context(style.context("default"))
+    stack.enter_context(rc_context(_PDF_RC))
+    return stack
+
+
+def _rects_path(rects: np.ndarray, discs: np.ndarray):
+    """One compound path of the black rectangles ``(x, y, w, h)`` and discs ``(x, y, r)``, in page mm;
+    all counter-clockwise, so the non-zero fill is their union (no seams where cells meet)."""
+    from matplotlib.path import Path as MplPath
+
+    x, y, w, h = np.asarray(rects, float).reshape(-1, 4).T
+    verts = np.stack([np.stack([x, y], -1), np.stack([x + w, y], -1), np.stack([x + w, y + h], -1)], axis=1)
+    verts = np.concatenate([verts, np.stack([x, y + h], -1)[:, None], np.stack([x, y], -1)[:, None]], axis=1)
+    codes = np.tile([MplPath.MOVETO, MplPath.LINETO, MplPath.LINETO, MplPath.LINETO, MplPath.CLOSEPOLY], len(x))
+    paths = [MplPath(verts.reshape(-1, 2), codes)]
+    paths += [MplPath.circle((cx, cy), r) for cx, cy, r in np.asarray(discs, float).reshape(-1, 3)]
+    return MplPath.make_compound_path(*paths)
+
+
+def _page_figure(width_mm: float, height_mm: float):
+    """A figure of the page's size, one axes over all of it, its data units page mm from the
+    bottom-left (y up): 1 mm = 72 / 25.4 pt in the PDF, the same scale along x and y."""
+    from matplotlib.backends.backend_pdf import FigureCanvasPdf
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(width_mm / 25.4, height_mm / 25.4), dpi=72, frameon=False)
+    FigureCanvasPdf(fig)
+    ax = fig.add_axes((0.0, 0.0, 1.0, 1.0), frameon=False)
+    ax.set_axis_off()
+    ax.set_xlim(0.0, width_mm)
+    ax.set_ylim(0.0, height_mm)
+    return fig, ax
+
+
+def _rect(ax, x: float, y: float, w: float, h: float, fill: bool = True, line_mm: float = 0.25) -> None:
+    from matplotlib.patches import Rectangle
+
+    style = {"facecolor": "black", "edgecolor": "none"} if fill else {"fill": False, "edgecolor": "black"}
+    ax.add_patch(Rectangle((x, y), w, h, linewidth=line_mm * PT_PER_MM, clip_on=False, **style))
+
+
+def _line(ax, x0: float, y0: float, x1: float, y1: float, line_mm: float = 0.25) -> None:
+    ax.plot([x0, x1], [y0, y1], color="black", lw=line_mm * PT_PER_MM, solid_capstyle="butt", clip_on=False)
+
+
+def _text(ax, x: float, y: float, s: str, size_pt: float = 8.0) -> None:
+    """``s`` from its baseline's left end at ``(x, y)`` mm; plain text (no mathtext), ASCII."""
+    s = s.encode("ascii", "replace").decode("ascii")
+    kw = {"ha": "left", "va": "baseline", "color": "black", "clip_on": False}
+    ax.text(x, y, s, fontsize=size_pt, family=_FONT, weight=_WEIGHT, usetex=False, parse_math=False, **kw)
+
+
+def _arrow(ax, start: np.ndarray, direction: np.ndarray, length: float, label: str) -> None:
+    from matplotlib.patches import Polygon
+
     d = direction / np.linalg.norm(direction)
     normal = np.array([-d[1], d[0]])
     tip = start + length * d
-    page.line(*start, *(tip - 1.5 * d), line_mm=0.35)
-    page.polygon(np.array([tip, tip - 2.5 * d + 1.0 * normal, tip - 2.5 * d - 1.0 * normal]))
-    page.text(*(tip + 1.5 * d - np.array([1.0, 1.2])), label, 8)
+    _line(ax, *start, *(tip - 1.5 * d), line_mm=0.35)
+    head = np.array([tip, tip - 2.5 * d + 1.0 * normal, tip - 2.5 * d - 1.0 * normal])
+    ax.add_patch(Polygon(head, closed=True, facecolor="black", edgecolor="none", clip_on=False))
+    _text(ax, *(tip + 1.5 * d - np.array([1.0, 1.2])), label, 8)
 
 
-def board_page(
-    name: str, spec: dict | None, points: np.ndarray, dot_radius_mm: float | None = None, source: str = ""
-) -> tuple[PdfPage, PagePlan, Drawing]:
-    """A board's page: the drawing placed by :func:`plan_page`, its caption, axes and scale bar."""
+def board_page(name: str, spec: dict | None, points: np.ndarray, dot_radius_mm: float | None = None, source: str = ""):
+    """A board's page as a matplotlib ``Figure`` (write it with :func:`write_pdf`): the drawing
+    placed by :func:`plan_page`, its caption, axes and scale bar.  Returns ``(figure, plan, drawing)``."""
+    from matplotlib.patches import PathPatch
+
     drawing = board_drawing(spec, points, dot_radius_mm)
     plan = plan_page(drawing)
-    page = PdfPage(*plan.size_mm)
-    page.comment(f"board {name}")
-    for x, y, w, h in drawing.rects:
-        a = plan.to_page_mm(np.array([[x, y], [x + w, y + h]]))
-        lo = a.min(axis=0)
-        page.rect(lo[0], lo[1], w, h)
-    for x, y, r in drawing.discs:
-        page.disc(*plan.to_page_mm(np.array([x, y])), r)
-    # the board frame's axes, just outside the board's corner nearest its origin
-    x0, y0, x1, y1 = drawing.extent
-    corner = plan.to_page_mm(np.array([x0, y0]))
-    ex, ey = np.array([1.0, 0.0]), np.array([0.0, 1.0 if plan.y_up else -1.0])
-    start = corner - 4.0 * ex - 4.0 * ey
-    _arrow(page, start, ex, 12.0, "x")
-    _arrow(page, start, ey, 12.0, "y")
-    # the caption and the scale bar
-    bx, by, length = plan.scale_bar_mm
-    lines = [
-        f"{name}: {describe(spec, len(points))}",
-        f"{len(points)} points; board frame: origin at {drawing.origin_note}, x right, "
-        f"y {'up' if plan.y_up else 'down'}, mm",
-        f"Print at 100 % (actual size, no fit to page) on {plan.paper}"
-        f"{' landscape' if plan.landscape else ''}: the bar below must measure {length:g} mm.",
-    ]
-    if source:
-        lines.append(f"slcvjax target {source}")
-    top = by + CAPTION_MM - 6.0 - 3.0
-    for i, s in enumerate(lines):
-        page.text(plan.scale_bar_mm[0] - 20.0, top - 4.2 * i, s, 8 if i else 9)
-    page.comment(f"scale bar {length:g} mm")
-    page.rect(bx, by, length, 2.0, fill=False, line_mm=0.2)
-    for k in range(0, int(round(length / 10)), 2):
-        page.rect(bx + 10.0 * k, by, 10.0, 2.0)
-    page.comment("end of scale bar")
-    for k in range(0, int(round(length / 10)) + 1):
-        page.line(bx + 10.0 * k, by - 1.5, bx + 10.0 * k, by, line_mm=0.2)
-    page.text(bx, by - 5.0, "0", 7)
-    page.text(bx + length - 8.0, by - 5.0, f"{length:g} mm", 7)
-    return page, plan, drawing
+    with _mpl_context():
+        fig, ax = _page_figure(*plan.size_mm)
+        rects = np.asarray(drawing.rects, float).reshape(-1, 4)
+        lo = np.minimum(plan.to_page_mm(rects[:, :2]), plan.to_page_mm(rects[:, :2] + rects[:, 2:]))
+        discs = np.asarray(drawing.discs, float).reshape(-1, 3)
+        discs_page = np.concatenate([plan.to_page_mm(discs[:, :2]), discs[:, 2:]], axis=1)
+        board = PathPatch(_rects_path(np.concatenate([lo, rects[:, 2:]], axis=1), discs_page), clip_on=False)
+        board.set(facecolor="black", edgecolor="none")
+        ax.add_patch(board)
+        # the board frame's axes, just outside the board's corner nearest its origin
+        x0, y0, x1, y1 = drawing.extent
+        corner = plan.to_page_mm(np.array([x0, y0]))
+        ex, ey = np.array([1.0, 0.0]), np.array([0.0, 1.0 if plan.y_up else -1.0])
+        start = corner - 4.0 * ex - 4.0 * ey
+        _arrow(ax, start, ex, 12.0, "x")
+        _arrow(ax, start, ey, 12.0, "y")
+        # the caption and the scale bar
+        bx, by, length = plan.scale_bar_mm
+        lines = [
+            f"{name}: {describe(spec, len(points))}",
+            f"{len(points)} points; board frame: origin at {drawing.origin_note}, x right, "
+            f"y {'up' if plan.y_up else 'down'}, mm",
+            f"Print at 100 % (actual size, no fit to page) on {plan.paper}"
+            f"{' landscape' if plan.landscape else ''}: the bar below must measure {length:g} mm.",
+        ]
+        if source:
+            lines.append(f"slcvjax target {source}")
+        top = by + CAPTION_MM - 6.0 - 3.0
+        for i, s in enumerate(lines):
+            _text(ax, bx - 20.0, top - 4.2 * i, s, 8 if i else 9)
+        _rect(ax, bx, by, length, 2.0, fill=False, line_mm=0.2)
+        for k in range(0, int(round(length / 10)), 2):
+            _rect(ax, bx + 10.0 * k, by, 10.0, 2.0)
+        for k in range(0, int(round(length / 10)) + 1):
+            _line(ax, bx + 10.0 * k, by - 1.5, bx + 10.0 * k, by, line_mm=0.2)
+        _text(ax, bx, by - 5.0, "0", 7)
+        _text(ax, bx + length - 8.0, by - 5.0, f"{length:g} mm", 7)
+    return fig, plan, drawing
+
+
+def pdf_bytes(fig) -> bytes:
+    """A page of :func:`board_page` as PDF bytes, by matplotlib's PDF backend: the page exactly the
+    figure's size (no bbox cropping), no creation date, so the same board gives the same bytes."""
+    import io
+
+    buf = io.BytesIO()
+    with _mpl_context():
+        fig.savefig(buf, format="pdf", bbox_inches=None, metadata={"Creator": "slcvjax", "CreationDate": None})
+    return buf.getvalue()
+
+
+def write_pdf(fig, path: str | os.PathLike) -> None:
+    """Write a page of :func:`board_page` to ``path`` atomically (a temporary file beside it, then renamed)."""
+    data = pdf_bytes(fig)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
 
 
 def write_board_pdf(path: str | os.PathLike, name: str, spec: dict | None, points: np.ndarray, **kw) -> PagePlan:
     """Write a board's true-scale page to ``path`` (see :func:`board_page`); returns its plan."""
-    page, plan, _ = board_page(name, spec, points, **kw)
-    page.write(path)
+    fig, plan, _ = board_page(name, spec, points, **kw)
+    write_pdf(fig, path)
     return plan
 
 
