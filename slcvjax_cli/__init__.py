@@ -231,6 +231,49 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--out", default="slcvjax-pipe", help="output directory (default ./slcvjax-pipe)")
     q.set_defaults(func=_command("pipe"))
 
+    tg = _add(sub, "target", help="write a true-scale PDF per board of a setup.json and the box's build sheet")
+    tg.add_argument("setup", help="a slcv-setup/1 file (setup.json)")
+    tg.add_argument("--out", required=True, help="output directory (BOARD.pdf per board, build_sheet.md and .png)")
+    tg.set_defaults(func=_command("target"))
+
+    su = _add(sub, "setup", help="write a setup.json for your own rig")
+    su_sub = su.add_subparsers(dest="setup_command", required=True)
+    si = su_sub.add_parser(
+        "init", help="a setup.json for a box of printed targets around the sensor (then: slcvjax target)"
+    )
+    si.add_argument("--mirror", required=True, help="the mirror, cone:RADIUSxHEIGHT in mm, e.g. cone:20x10")
+    si.add_argument("--lasers", type=int, required=True, help="number of lasers")
+    si.add_argument(
+        "--target",
+        default="charuco-box",
+        choices=("charuco-box", "aprilgrid-box", "dots-box"),
+        help="the wall targets (default charuco-box)",
+    )
+    si.add_argument("--out", default="setup.json", help="output file (default ./setup.json)")
+    si.add_argument("--box", type=float, default=280.0, help="the box's inner width in mm (default 280)")
+    si.add_argument("--walls", type=int, default=4, help="wall targets around the sensor (default 4)")
+    si.add_argument(
+        "--mirror-distance", type=float, default=48.0, help="the mirror's apex in front of the lens, mm (default 48)"
+    )
+    si.add_argument("--image-size", default="640x480", help="the camera's image, WIDTHxHEIGHT px (default 640x480)")
+    si.add_argument(
+        "--squares", help="per wall: charuco squares, aprilgrid tags or dots, COLSxROWS (default 8x3, 6x2, 3x3)"
+    )
+    si.add_argument(
+        "--square-mm", type=float, help="charuco square, aprilgrid tag or dots' x pitch, mm (default 18, 18, 50)"
+    )
+    si.add_argument("--marker-mm", type=float, help="charuco marker or dots' y pitch, mm (default 13.5, -, 20)")
+    si.add_argument("--spacing", type=float, default=0.3, help="aprilgrid: the gap over the tag (default 0.3)")
+    si.add_argument(
+        "--board-z", type=float, help="the boards' centre along the axis, mm (default: the middle of the mirror's view)"
+    )
+    si.add_argument(
+        "--chessboard",
+        default="9x6x20",
+        help="the direct-view chessboard, COLSxROWSxSQUARE_MM inner corners (default 9x6x20; 'none': without)",
+    )
+    si.set_defaults(func=_command("setup"))
+
     d = _add(sub, "demo", help="the main job on the simulated reference rig")
     d.add_argument(
         "--noise",
