@@ -88,17 +88,24 @@ def build_parser() -> argparse.ArgumentParser:
         help="a slcv-calibration/1 file whose camera and mirror start the calibration (with --freeze camera,mirror: "
         "only the poses and lasers are fitted, the held-out evaluation of that calibration)",
     )
+    c.add_argument(
+        "--options",
+        help="a JSON file of calibration options (max_steps, freeze, rigid, robust: loss, outlier_sigmas, "
+        "consensus_px, ...; see the formulation page); the flags below override it",
+    )
     c.add_argument("--freeze", help="comma-separated blocks to hold fixed: camera, mirror, lasers, poses, chess_poses")
     c.add_argument(
         "--loss",
-        default="huber",
+        default=None,
         choices=["huber", "cauchy", "linear"],
         help="robust loss (default huber); linear: plain least squares, no outlier left out",
     )
     c.add_argument("--loss-scale", type=float, default=None, help="robust loss scale in px (default 3 sigma)")
     c.add_argument(
         "--rigid",
-        action="store_true",
+        action="store_const",
+        const=True,
+        default=None,
         help="the targets the observations declare fixed in one box (rigid_boards) as one pose per board in the "
         "box and one sensor pose per view; a board pose that does not fit the box is left out and reported",
     )

@@ -116,7 +116,7 @@ def test_help_and_version_answer_without_importing_jax():
     r = _run_python(code)
     assert r.returncode == 0, r.stderr
     assert "IMPORTED []" in r.stdout, r.stdout[-2000:]
-    assert len(commands) == 10
+    assert {"simulate", "detect", "calibrate", "camera", "omni", "measure", "target", "setup", "demo"} <= set(commands)
 
 
 def test_the_console_script_is_the_light_entry_point():

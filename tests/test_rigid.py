@@ -221,7 +221,7 @@ def test_the_box_judges_again_the_spots_the_free_solve_relabelled(small):
     handed = dataclasses.replace(
         free, packed=free.packed.select(np.ones(n_d, bool), np.ones(n_s, bool), labels), repairs=[*free.repairs, record]
     )
-    res = rigid_refine(handed, wrong, list(obs.extra["rigid_boards"]), 500)
+    res = rigid_refine(handed, wrong, list(obs.extra["rigid_boards"]))
     restored = {(r["view"], r["index"]) for r in res.box["spots_restored"]}
     assert (obs.views[v].name, j) in restored, (res.box["spots_restored"], free.repairs)
     # each spot restored was changed by the free solve and had its true label in the input

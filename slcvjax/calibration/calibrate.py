@@ -14,6 +14,7 @@ from ..observations.formats import Observations
 from .base import CalibrationError
 from .executors import resolve_batch, solve_loop, solve_vmap
 from .model_selection import auto_kind, through_the_mirror
+from .options import CalibrationOptions, merged_options
 from .result import CalibrationResult
 from .rigid import rigid_group
 from .rigid_pass import rigid_refine
@@ -23,17 +24,21 @@ from .schedule import calibrate_lockstep
 def calibrate(
     obs: Observations,
     camera: Camera | None = None,
-    freeze: tuple[str, ...] | set[str] = (),
-    loss: str = "huber",
+    freeze: tuple[str, ...] | set[str] | None = None,
+    loss: str | None = None,
     loss_scale: float | None = None,
-    max_steps: int = 500,
-    rigid: "bool | list[str]" = False,
+    max_steps: int | None = None,
+    rigid: "bool | list[str] | None" = None,
     mirror=None,
+    options: CalibrationOptions | None = None,
 ) -> CalibrationResult:
     """Calibrate the whole rig from observations (see the module docstring).
 
     Args:
         obs: the observations.
+        options: the settings (:class:`slcvjax.calibration.options.CalibrationOptions`; default:
+            its defaults).  ``freeze``, ``loss``, ``loss_scale``, ``max_steps`` and ``rigid``,
+            where given (not None), override the options' fields of those names.
         camera: a known camera to start from (freeze it with ``freeze={"camera"}``);
             without it the intrinsics come from the direct chessboard views.
         mirror: a known mirror (pose and shape) to start from instead of the rim's
@@ -51,7 +56,8 @@ def calibrate(
             free solution (pass R); a board pose that does not fit the box is left out and
             reported.
     """
-    group = rigid_group(obs, rigid)
+    options = merged_options(options, freeze, loss, loss_scale, max_steps, rigid)
+    group = rigid_group(obs, options.rigid)
     telecentric = obs.camera_projection == "telecentric"
     through = camera is None and mirror is None and not obs.calibration_views and obs.mirror_shape is not None
     if obs.camera_projection == "auto" and not (through and obs.mirror_shape["kind"] != "cone"):
@@ -75,12 +81,12 @@ def calibrate(
             "(no calibration_views, no camera or mirror to start from)"
         )
     if auto:
-        res = auto_kind(obs, freeze, loss, loss_scale, max_steps)
+        res = auto_kind(obs, options)
     elif through:
-        res = through_the_mirror(obs, freeze, loss, loss_scale, max_steps)
+        res = through_the_mirror(obs, options)
     else:
-        res = calibrate_lockstep([obs], camera, freeze, loss, loss_scale, max_steps, solve_loop, mirror=mirror)[0]
-    return rigid_refine(res, obs, group, max_steps) if group else res
+        res = calibrate_lockstep([obs], camera, options, solve_loop, mirror=mirror)[0]
+    return rigid_refine(res, obs, group) if group else res
 
 
 def calibrate_many(
@@ -90,12 +96,13 @@ def calibrate_many(
     workers: int = 1,
     *,
     camera: Camera | None = None,
-    freeze: tuple[str, ...] | set[str] = (),
-    loss: str = "huber",
+    freeze: tuple[str, ...] | set[str] | None = None,
+    loss: str | None = None,
     loss_scale: float | None = None,
-    max_steps: int = 500,
-    rigid: "bool | list[str]" = False,
+    max_steps: int | None = None,
+    rigid: "bool | list[str] | None" = None,
     mirror=None,
+    options: CalibrationOptions | None = None,
 ) -> list[CalibrationResult]:
     """Calibrate several observation sets (Monte Carlo trials, say) with :func:`calibrate`'s method.
 
@@ -113,19 +120,16 @@ def calibrate_many(
     (the staged stages, OpenCV, NumPy) beside another's compiled programs, which run one at
     a time (see ``slcvjax.support.persist``); results equal to round-off.
 
-    ``camera``, ``freeze``, ``loss``, ``loss_scale``, ``max_steps``, ``rigid`` and ``mirror`` are
-    :func:`calibrate`'s, the same for every set.  With
+    ``camera``, ``freeze``, ``loss``, ``loss_scale``, ``max_steps``, ``rigid``, ``mirror`` and
+    ``options`` are :func:`calibrate`'s, the same for every set.  With
     ``progress`` a bar counts the calibrations (in ``vmap`` they finish together, and the
     bar names the pass under way).
     """
-    kw = dict(
-        camera=camera, freeze=freeze, loss=loss, loss_scale=loss_scale, max_steps=max_steps, rigid=rigid, mirror=mirror
-    )
-    args = (kw["camera"], kw["freeze"], kw["loss"], kw["loss_scale"], kw["max_steps"])
-    groups = [rigid_group(o, kw["rigid"]) for o in observations]
+    options = merged_options(options, freeze, loss, loss_scale, max_steps, rigid)
+    groups = [rigid_group(o, options.rigid) for o in observations]
 
-    def rigid(res, o, group):
-        return rigid_refine(res, o, group, kw["max_steps"]) if group else res
+    def in_box(res, o, group):
+        return rigid_refine(res, o, group) if group else res
 
     batch = resolve_batch(batch)
     bar = None
@@ -139,7 +143,7 @@ def calibrate_many(
                 raise ValueError(f"workers: expected at least 1, got {workers}")
 
             def one(o, group):
-                return rigid(calibrate_lockstep([o], *args, solve_loop, mirror=kw["mirror"])[0], o, group)
+                return in_box(calibrate_lockstep([o], camera, options, solve_loop, mirror=mirror)[0], o, group)
 
             out = []
             with ThreadPoolExecutor(workers) as pool:
@@ -148,8 +152,8 @@ def calibrate_many(
                     if bar is not None:
                         bar.update(1)
             return out
-        out = calibrate_lockstep(observations, *args, solve_vmap, bar=bar, mirror=kw["mirror"])
-        out = [rigid(res, o, g) for res, o, g in zip(out, observations, groups, strict=True)]
+        out = calibrate_lockstep(observations, camera, options, solve_vmap, bar=bar, mirror=mirror)
+        out = [in_box(res, o, g) for res, o, g in zip(out, observations, groups, strict=True)]
         if bar is not None:
             bar.update(len(out))  # in lockstep they finish together
         return out

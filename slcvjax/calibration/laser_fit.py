@@ -20,11 +20,9 @@ from ..observations.problem import (
     map_padded,
 )
 from .base import StageReport, rays_with_pixel_metric
+from .options import DEFAULT_POLICY, RobustPolicy
 
 RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))  # median of |r| / sigma for 2D Gaussian r
-CONSENSUS_PX = 10.0  # a spot within this of a candidate line counts for it in the consensus
-REPAIR_SIGMAS = 5.0  # a spot further than this many noise sigmas from its own line is repaired
-MIN_REPAIR_PX = 1.0  # ... but never for less than this (a noise estimate can be tiny)
 
 
 @dataclass
@@ -112,16 +110,22 @@ def aimed_lasers(camera: Camera, mirror: Mirror, pk: Packed, poses: list[Pose], 
 
 
 def fit_lasers(
-    camera: Camera, mirror: Mirror, pk: Packed, poses: list[Pose], n_lasers: int, repair: bool = True
+    camera: Camera,
+    mirror: Mirror,
+    pk: Packed,
+    poses: list[Pose],
+    n_lasers: int,
+    repair: bool = True,
+    policy: RobustPolicy = DEFAULT_POLICY,
 ) -> LaserFit:
     """One 3D line per laser through its spots' points on their boards' planes, robust to
     wrong labels and gross outliers.
 
     Each spot's reflected ray meets its board's plane at a point.  Per laser, every pair of
     its points proposes a line, and the one that most of its spots lie near (within
-    :data:`CONSENSUS_PX`, the truncated quadratic cost of MSAC) wins; a least-squares line
+    ``policy.consensus_px``, the truncated quadratic cost of MSAC) wins; a least-squares line
     through those spots follows.  Then every spot is measured against every laser's line
-    (:func:`spot_line_residuals`): one further than ``REPAIR_SIGMAS`` noise sigmas (the
+    (:func:`spot_line_residuals`): one further than ``policy.repair_sigmas`` noise sigmas (the
     sigma from the median distance of the spots from their own lines) from its own line is
     given the one other line it lies near, or left out where none or more than one is near;
     the lines are fitted again to the spots they keep, twice.  ``repair=False``: every spot
@@ -163,8 +167,8 @@ def fit_lasers(
                 a, b = a[far], b[far]
                 cand_d = (p[b] - p[a]) / np.linalg.norm(p[b] - p[a], axis=1, keepdims=True)
                 r = residuals(p[a], cand_d)[idx]  # (own spots, candidates)
-                best = int(np.argmin(np.sum(np.minimum(r, CONSENSUS_PX) ** 2, axis=0)))
-                inl = r[:, best] < CONSENSUS_PX
+                best = int(np.argmin(np.sum(np.minimum(r, policy.consensus_px) ** 2, axis=0)))
+                inl = r[:, best] < policy.consensus_px
                 if inl.sum() >= 2:
                     p = p[inl]
             points[laser], directions[laser] = _line_through(p)
@@ -181,14 +185,14 @@ def fit_lasers(
         r_own = r[np.arange(len(own)), own]
         finite = usable & np.isfinite(r_own)
         sigma = float(np.median(r_own[finite])) / RAYLEIGH_MEDIAN if finite.any() else 0.0
-        threshold = max(REPAIR_SIGMAS * sigma, MIN_REPAIR_PX)
+        threshold = max(policy.repair_sigmas * sigma, policy.min_repair_px)
         near = r <= threshold
         labels = np.where(near[np.arange(len(own)), own], own, -1)
         other = (labels < 0) & (near.sum(axis=1) == 1)
         labels[other] = np.argmax(near[other], axis=1)
         # a spot near no line keeps its own unless it is far from every line: with the
         # geometry not final yet, the joint stage decides on the smaller misfits
-        keep = (labels < 0) & (near.sum(axis=1) == 0) & (r_own <= CONSENSUS_PX)
+        keep = (labels < 0) & (near.sum(axis=1) == 0) & (r_own <= policy.consensus_px)
         labels[keep] = own[keep]
         labels[~usable] = -1
         points, directions, why = fit(labels, consensus=False)

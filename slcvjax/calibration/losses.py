@@ -14,10 +14,8 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 from ..observations.problem import ROBUST_KINDS, kind_weights
+from .options import LOSSES
 from .schur import Rows
-
-LOSSES = ("huber", "cauchy", "linear")
-
 
 INVALID_PX = 30.0  # an invalid observation costs what a residual of this many px costs under the loss
 

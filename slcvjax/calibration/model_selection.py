@@ -17,15 +17,12 @@ from .base import CalibrationError, StageReport
 from .central import central_start
 from .evaluate import per_observation
 from .executors import solve_loop
+from .options import DEFAULT_OPTIONS, CalibrationOptions
 from .report import report
 from .result import CalibrationResult
 from .schedule import calibrate_lockstep
 
-MAX_STEPS = 500  # calibrate()'s default step limit per pass
 AUTO_KINDS = ("hyperboloid", "paraboloid", "sphere")  # a hyperboloid's conic constant may cross to an ellipsoid's
-
-
-AUTO_FOLDS = 5
 
 
 def held_out_rms(rig: Rig, held: Observations) -> tuple[float, int, int]:
@@ -35,17 +32,16 @@ def held_out_rms(rig: Rig, held: Observations) -> tuple[float, int, int]:
 
     held = dataclasses.replace(held, mirror_shape=shape_json(rig.mirror), camera_projection=rig.camera.projection)
     # calibrate()'s path for a given camera and mirror (no rigid box): the schedule from them
-    ev = calibrate_lockstep(
-        [held], rig.camera, {"camera", "mirror"}, "linear", None, MAX_STEPS, solve_loop, mirror=rig.mirror
-    )[0]
+    options = DEFAULT_OPTIONS.replace(freeze=("camera", "mirror"), robust={"loss": "linear"})
+    ev = calibrate_lockstep([held], rig.camera, options, solve_loop, mirror=rig.mirror)[0]
     r = report(ev, held)["residuals"]
     n = sum(int(s.sum()) for v in held.views for _, s in v.boards.values()) + sum(len(v.spots) for v in held.views)
     return float(r["rms_px"]), n - int(r["invalid"]), int(r["invalid"])
 
 
-def auto_kind(obs: Observations, freeze, loss, loss_scale, max_steps) -> "CalibrationResult":
+def auto_kind(obs: Observations, options: CalibrationOptions) -> "CalibrationResult":
     """``mirror_shape.kind = "auto"``: each of :data:`AUTO_KINDS` fitted on every view, then
-    scored by :data:`AUTO_FOLDS`-fold cross-validation over the views (every fifth view held out
+    scored by ``options.auto_folds``-fold cross-validation over the views (every fifth view held out
     in turn, each fold's fit started from the fit on every view); the kind of the least held-out
     RMS (fewest held-out observations off the model first) is kept; the stage ``mirror_kind``
     reports each kind's figure, and says so where kinds lie within two standard errors of the
@@ -56,7 +52,7 @@ def auto_kind(obs: Observations, freeze, loss, loss_scale, max_steps) -> "Calibr
     n = len(obs.views)
     if n < 2:
         raise CalibrationError("mirror_shape.kind: auto picks the kind by held-out views: it needs at least 2 views")
-    k = min(AUTO_FOLDS, n)
+    k = min(options.auto_folds, n)
     folds = [list(range(i, n, k)) for i in range(k)]
     dims = {key: obs.mirror_shape[key] for key in ("vertex_radius",) if key in obs.mirror_shape}
     scores: dict[str, tuple[int, float]] = {}
@@ -65,12 +61,12 @@ def auto_kind(obs: Observations, freeze, loss, loss_scale, max_steps) -> "Calibr
     with tqdm(total=len(AUTO_KINDS) * (k + 1), desc="mirror kind (held-out views)", leave=False, disable=None) as bar:
         for kind in AUTO_KINDS:
             o_kind = dataclasses.replace(obs, mirror_shape={"kind": kind} | dims)
-            kind_freeze, estimate = shape_unknowns(o_kind.mirror_shape, freeze)
+            kind_freeze, estimate = shape_unknowns(o_kind.mirror_shape, options.freeze)
             sq, used, bad = 0.0, 0, 0
             try:
                 # every view from each central start; each fold's fit starts from it (one start:
                 # the fold's own minimum, the held-out views' residuals left out of its cost)
-                fits[kind] = full = through_the_mirror(o_kind, freeze, loss, loss_scale, max_steps)
+                fits[kind] = full = through_the_mirror(o_kind, options)
                 bar.update(1)
                 for fold in folds:
                     train = dataclasses.replace(o_kind, views=[v for i, v in enumerate(obs.views) if i not in fold])
@@ -78,10 +74,7 @@ def auto_kind(obs: Observations, freeze, loss, loss_scale, max_steps) -> "Calibr
                     fit = calibrate_lockstep(
                         [train],
                         full.rig.camera,
-                        kind_freeze,
-                        loss,
-                        loss_scale,
-                        max_steps,
+                        options.replace(freeze=kind_freeze),
                         solve_loop,
                         mirror=full.rig.mirror,
                         estimate=estimate,
@@ -126,9 +119,6 @@ def shape_unknowns(shape: dict, freeze) -> tuple[set, set]:
     return freeze, estimate
 
 
-PROJECTION_TEST_LEVEL = 0.05  # the F-test's level at which the perspective term is kept
-
-
 def perspective_test(tele: "CalibrationResult", persp: "CalibrationResult") -> tuple[float, int, int]:
     """``(p-value, extra unknowns, dof)`` of the F-test of a telecentric fit against the
     perspective one of the same views: a telecentric camera is a pinhole's limit at an infinite
@@ -147,19 +137,19 @@ def perspective_test(tele: "CalibrationResult", persp: "CalibrationResult") -> t
     return pval, q, dof
 
 
-def through_the_mirror(obs: Observations, freeze, loss, loss_scale, max_steps) -> "CalibrationResult":
+def through_the_mirror(obs: Observations, options: CalibrationOptions) -> "CalibrationResult":
     """A rig seen only through its mirror (no direct views): the joint passes from each central
     start (:func:`slcvjax.calibration.central.central_start`), the lowest final cost kept.  Where the shape leaves
     out the conic constant, the start searches it and the joint passes estimate it (the vertex
     radius held: the scale's gauge).  ``camera_projection = "auto"`` fits a telecentric and a
     perspective camera and keeps the perspective one only where :func:`perspective_test` says the
-    views need it (p-value below :data:`PROJECTION_TEST_LEVEL`; fewer observations off the model
+    views need it (p-value below ``options.projection_test_level``; fewer observations off the model
     first): the pinhole's depth is otherwise a near-gauge that drifts towards the telecentric
     limit and costs held-out accuracy."""
     if obs.camera_projection == "auto":
-        return auto_projection(obs, freeze, loss, loss_scale, max_steps)
+        return auto_projection(obs, options)
     shape = obs.mirror_shape
-    freeze, estimate = shape_unknowns(shape, freeze)
+    freeze, estimate = shape_unknowns(shape, options.freeze)
     kind = shape["kind"]
     if kind == "asphere":  # started as its conic, then given its polynomial terms
         kind = conic_kind(shape["conic_constant"])
@@ -183,11 +173,9 @@ def through_the_mirror(obs: Observations, freeze, loss, loss_scale, max_steps) -
             )
             for cam, m, rep in starts
         ]
-    best = None
+    best, held = None, options.replace(freeze=freeze)
     for cam, mir, rep in starts:
-        res = calibrate_lockstep(
-            [obs], cam, freeze, loss, loss_scale, max_steps, solve_loop, mirror=mir, estimate=estimate
-        )[0]
+        res = calibrate_lockstep([obs], cam, held, solve_loop, mirror=mir, estimate=estimate)[0]
         res.staged.reports.insert(0, rep)
         if best is None or res.passes[-1].cost < best.passes[-1].cost:
             best = res
@@ -200,15 +188,13 @@ def through_the_mirror(obs: Observations, freeze, loss, loss_scale, max_steps) -
     return best
 
 
-def auto_projection(obs: Observations, freeze, loss, loss_scale, max_steps) -> "CalibrationResult":
+def auto_projection(obs: Observations, options: CalibrationOptions) -> "CalibrationResult":
     """:func:`through_the_mirror` for ``camera_projection = "auto"``."""
     fits: dict[str, CalibrationResult] = {}
     failed: dict[str, str] = {}
     for proj in ("telecentric", "perspective"):
         try:
-            fits[proj] = through_the_mirror(
-                dataclasses.replace(obs, camera_projection=proj), freeze, loss, loss_scale, max_steps
-            )
+            fits[proj] = through_the_mirror(dataclasses.replace(obs, camera_projection=proj), options)
         except CalibrationError as e:
             failed[proj] = str(e)
     if not fits:
@@ -233,10 +219,10 @@ def auto_projection(obs: Observations, freeze, loss, loss_scale, max_steps) -> "
             best = min(fits, key=lambda k: off[k])
             notes.append(f"chosen: {best} (fewer observations off the model)")
         else:
-            best = "perspective" if pval < PROJECTION_TEST_LEVEL else "telecentric"
+            best = "perspective" if pval < options.projection_test_level else "telecentric"
             notes.append(
                 f"chosen: {best} (F-test of the perspective's {q} extra unknown(s): p = {pval:.3g}, "
-                f"kept below {PROJECTION_TEST_LEVEL:g})"
+                f"kept below {options.projection_test_level:g})"
             )
     res = fits[best]
     res.staged.reports.insert(0, StageReport("camera_projection", float(res.cov.sigma), "px (sigma)", notes))

@@ -16,10 +16,6 @@ from .params import Masks, Params, pad_masks, pad_params
 from .result import JointPass
 from .trial import Trial
 
-# The passes before the last only have to bring the next one into its basin; the last
-# converges to round-off.  The flipped twins are refined only far enough to compare
-# their fit with the poses they may replace (the final pass refines the winners), and
-# the first pass only far enough to decide the boards' flips again.
 RTOL_START = 1e-5
 
 
@@ -44,9 +40,10 @@ class PassSpec:
     ``lasers_held``: the lasers' columns held (the rest as the calibration frees them);
     ``kind_weight``: the weight of each observation kind (dot, spot, rim, corner; None: all 1);
     ``rtol``: the LM's relative cost tolerance; ``scale_floor``: the loss scale is the user's
-    ``loss_scale``, else 3 x the robust noise sigma of the pass's start, at least this many px
-    (None: the scale the trial has); ``steps``: a step limit below the calibration's (the pass
-    only has to bring the next into its basin); ``loss``: a loss instead of the calibration's.
+    ``loss_scale``, else ``scale_sigmas`` x the robust noise sigma of the pass's start, at least
+    this many px (None: the scale the trial has); ``steps``: a step limit below the calibration's
+    (the pass only has to bring the next into its basin); ``loss``: a loss instead of the
+    calibration's; ``rig_held``: its solves free the board poses only.
     """
 
     name: str
@@ -56,6 +53,19 @@ class PassSpec:
     scale_floor: float | None = None
     steps: int | None = None
     loss: str | None = None
+    rig_held: bool = False  # only the board poses are freed (its solves come with masks that say so)
+
+    def describe(self) -> str:
+        """What the pass frees, weighs and stops at, in words (the formulation page's table)."""
+        frees = "everything but the lasers" if self.lasers_held else "everything"
+        if self.rig_held:
+            frees = "the board poses only (the rig held)"
+        kw = self.kind_weight or (1.0, 1.0, 1.0, 1.0)
+        weights = ", ".join(f"{k} {w:g}" for k, w in zip(("dots", "spots", "rim", "corners"), kw, strict=True))
+        scale = "the trial's" if self.scale_floor is None else f"re-estimated (at least {self.scale_floor:g} px)"
+        limit = f"; at most {self.steps} steps" if self.steps is not None else ""
+        loss = f"; {self.loss} loss" if self.loss else ""
+        return f"frees {frees}; weights {weights}; loss scale {scale}; rtol {self.rtol:g}{limit}{loss}"
 
 
 _NO_SPOTS = (1.0, 0.0, 1.0, 1.0)
@@ -102,7 +112,7 @@ def solve_job(tr: "Trial", params: Params, spec: PassSpec, masks: Masks | None =
 
 
 # the other starts of the boards' poses (:func:`other_starts_of`, each with its own masks)
-TWIN_SOLVE = PassSpec("other starts", rtol=RTOL_TWIN)
+TWIN_SOLVE = PassSpec("other starts", rtol=RTOL_TWIN, rig_held=True)
 
 
 def record_pass(tr: "Trial", name: str, res, limit: int | None, note: str = "") -> None:

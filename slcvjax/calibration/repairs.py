@@ -2,7 +2,7 @@
 recorded.
 
 Spots that lie on another laser's line are relabelled (from the consensus fit of the lines);
-dots and spots beyond :data:`OUTLIER_SIGMAS` sigmas of their kind (and :data:`MIN_OUTLIER_PX`) are
+dots and spots beyond ``outlier_sigmas`` sigmas of their kind (and ``min_outlier_px``) are
 found under the redescending Cauchy loss and left out; what fits again once they are out comes
 back (a dot on another grid position, a spot on exactly one other laser's line).  Each change is a
 record in the trial's ``repairs`` (kind, view, board, index, action, residuals, reason).
@@ -16,19 +16,7 @@ from ..observations.formats import Observations
 from ..observations.problem import KIND_NAMES, Kind, Packed
 from .covariance import kind_sigmas, sigmas_of
 from .evaluate import per_observation, probe_at
-from .laser_fit import CONSENSUS_PX
 from .trial import Trial
-
-OUTLIER_SIGMAS = 5.0  # a dot or spot with a residual beyond this many sigmas of its kind is left out,
-
-
-MIN_OUTLIER_PX = 1.0  # ... and beyond this (a gross error, not a detector's sub-pixel bias)
-
-
-MIN_BOARD_DOTS = 4  # a board pose with fewer dots than this left is left out whole
-
-
-CAUCHY_WIDEN = 10.0  # the first outlier-finding pass's Cauchy scale, in loss scales
 
 
 def _dot_source(tr: "Trial", i: int, pk: Packed) -> dict:
@@ -78,8 +66,8 @@ def relabel_spots(tr: "Trial", fit) -> None:
 
 
 def _outliers(tr: "Trial", pk: Packed) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Which dots and spots of ``pk`` lie beyond :data:`OUTLIER_SIGMAS` sigmas of their kind (and
-    beyond :data:`MIN_OUTLIER_PX`) at the trial's solution (each kind's sigma from the median
+    """Which dots and spots of ``pk`` lie beyond ``policy.outlier_sigmas`` sigmas of their kind (and
+    beyond ``policy.min_outlier_px``) at the trial's solution (each kind's sigma from the median
     residual of the observations the trial keeps, corrected for the degrees of freedom), or
     whose prediction is not valid (off the mirror or the sensor), with every observation's
     residual norm and kind, the thresholds (px) per kind and the validity."""
@@ -93,7 +81,7 @@ def _outliers(tr: "Trial", pk: Packed) -> tuple[np.ndarray, np.ndarray, np.ndarr
     kept_d, kept_s = int(tr.pk.counts[Kind.DOT]), int(tr.pk.counts[Kind.SPOT])
     sig[Kind.DOT] *= np.sqrt(2 * kept_d / max(2 * kept_d - 6 * tr.pk.n_poses, 1))
     sig[Kind.SPOT] *= np.sqrt(2 * kept_s / max(2 * kept_s - 4 * tr.obs.n_lasers, 1))
-    limit = np.maximum(OUTLIER_SIGMAS * sig, MIN_OUTLIER_PX)
+    limit = np.maximum(tr.policy.outlier_sigmas * sig, tr.policy.min_outlier_px)
     for k in (Kind.DOT, Kind.SPOT):
         if np.isfinite(sig[k]):
             bad |= (ok & (kind == k) & (norm > limit[k]))[: n_d + n_s]
@@ -102,9 +90,9 @@ def _outliers(tr: "Trial", pk: Packed) -> tuple[np.ndarray, np.ndarray, np.ndarr
 
 
 def leave_out(tr: "Trial", starts, rerun, rounds: int = 3, find: bool = True) -> None:
-    """Leave out the trial's gross outliers: the dots and spots beyond :data:`OUTLIER_SIGMAS`
+    """Leave out the trial's gross outliers: the dots and spots beyond ``policy.outlier_sigmas``
     sigmas (:func:`_outliers`).  Where there are any, the final pass runs first with the
-    redescending Cauchy loss (``rerun("cauchy", scale)``, first at :data:`CAUCHY_WIDEN` times the
+    redescending Cauchy loss (``rerun("cauchy", scale)``, first at ``policy.cauchy_widen`` times the
     loss scale, then at it), under which a gross outlier no longer drags
     its board's pose, so that the outliers found then are the wrong observations, not the good
     ones of a dragged board (and every board tries its other starts under that loss,
@@ -112,7 +100,7 @@ def leave_out(tr: "Trial", starts, rerun, rounds: int = 3, find: bool = True) ->
     those are left out and the final pass runs again with the
     calibration's loss (``rerun(None, scale)``); observations left out that fit the new solution come
     back, until the set left out stays the same (at most ``rounds`` times).  A board left with
-    fewer than :data:`MIN_BOARD_DOTS` dots is left out whole (its pose is not determined).
+    fewer than ``policy.min_board_dots`` dots is left out whole (its pose is not determined).
     Spots set aside earlier by their lines (``tr.set_aside``) are predictions at this geometry,
     not fitted residuals: those predicted near their line (:func:`predicted_fit`) come back
     and are judged with the rest (a board pose wrong when the lines were fitted made them look
@@ -144,12 +132,13 @@ def leave_out(tr: "Trial", starts, rerun, rounds: int = 3, find: bool = True) ->
             item = src | {"laser": int(np.asarray(full.spot_laser)[i - n_d])}
         k = int(kind[i])
         if whole[i]:
-            why = f"its board's pose in this view is not determined: fewer than {MIN_BOARD_DOTS} of its dots agree"
+            why = "its board's pose in this view is not determined: "
+            why += f"fewer than {tr.policy.min_board_dots} of its dots agree"
         elif not valid[i]:
             why = "its prediction falls off the mirror or the sensor (out of the model's reach)"
         else:
-            why = f"residual {norm[i]:.3g} px beyond {limit[k]:.3g} px ({OUTLIER_SIGMAS:g} sigma of the "
-            why += f"{KIND_NAMES[k]}s, at least {MIN_OUTLIER_PX:g} px)"
+            why = f"residual {norm[i]:.3g} px beyond {limit[k]:.3g} px ({tr.policy.outlier_sigmas:g} sigma of the "
+            why += f"{KIND_NAMES[k]}s, at least {tr.policy.min_outlier_px:g} px)"
         tr.repairs.append(
             item
             | {"action": "left out", "residual_px": float(norm[i]) if valid[i] and not whole[i] else None}
@@ -166,14 +155,14 @@ def use_all_but(tr: "Trial", full: Packed, out: np.ndarray) -> None:
 
 def predicted_fit(tr: "Trial", full: Packed, rows: np.ndarray) -> np.ndarray:
     """Where ``rows`` holds: the observation of ``full`` is predicted, at the trial's solution,
-    within :data:`CONSENSUS_PX` (elsewhere False).  A left-out spot's residual is a prediction,
+    within ``policy.consensus_px`` (elsewhere False).  A left-out spot's residual is a prediction,
     which the spot's own weight would shrink: a laser with few spots predicts a good one several
     noise sigmas off, so it is judged as the lines' consensus judges a spot, then refitted."""
     if not rows.any():
         return np.zeros_like(rows)
     n = rows.size
     norm, _, valid = per_observation(tr.params, full)
-    return rows & valid[:n] & (norm[:n] <= CONSENSUS_PX)
+    return rows & valid[:n] & (norm[:n] <= tr.policy.consensus_px)
 
 
 def _robust_rounds(tr: "Trial", full: Packed, out, starts, rerun, scale: float, rounds: int):
@@ -183,7 +172,7 @@ def _robust_rounds(tr: "Trial", full: Packed, out, starts, rerun, scale: float, 
     n_d = int(full.counts[Kind.DOT])
     # graduated: at a wide scale first, where the good observations of a dragged board still
     # pull (at the final scale they may already count as outliers: a local minimum)
-    rerun("cauchy", CAUCHY_WIDEN * scale)
+    rerun("cauchy", tr.policy.cauchy_widen * scale)
     rerun("cauchy", scale)
     starts()
     rerun("cauchy", scale)
@@ -194,7 +183,8 @@ def _robust_rounds(tr: "Trial", full: Packed, out, starts, rerun, scale: float, 
         # a board with too few dots left: every dot and spot of it out
         pose_d, pose_s = np.asarray(full.dot_pose)[:n_d], np.asarray(full.spot_pose)[: len(out) - n_d]
         kept = np.bincount(pose_d[~bad[:n_d]], minlength=full.n_poses)
-        weak = (kept < MIN_BOARD_DOTS) & (np.bincount(pose_d, minlength=full.n_poses) >= MIN_BOARD_DOTS)
+        min_dots = tr.policy.min_board_dots
+        weak = (kept < min_dots) & (np.bincount(pose_d, minlength=full.n_poses) >= min_dots)
         whole = np.concatenate([weak[pose_d], weak[pose_s]])
         bad |= whole
         if ran and np.array_equal(bad, out):
@@ -209,7 +199,7 @@ def _robust_rounds(tr: "Trial", full: Packed, out, starts, rerun, scale: float, 
 def _bring_back(tr: "Trial", full: Packed, aside, out, whole, rerun, scale: float) -> tuple[Packed, np.ndarray]:
     """Observations left out that fit once the outliers are gone come back: a dot that lies on
     another grid position of its board (one not seen in that view) with that position, a spot
-    that lies on exactly one other laser's line (within :data:`CONSENSUS_PX`, as the consensus
+    that lies on exactly one other laser's line (within ``policy.consensus_px``, as the consensus
     looks for it: a left-out spot's residual is a prediction) with that laser, and a spot set
     aside by its lines that its own line now predicts (:func:`predicted_fit`).  The spots are
     kept only if they fit once refitted.  Records the changes; returns the problem (with the
@@ -219,7 +209,7 @@ def _bring_back(tr: "Trial", full: Packed, aside, out, whole, rerun, scale: floa
     cand = out & ~whole
     own = predicted_fit(tr, full, cand & aside)
     moved = _regrid(tr, full, cand, limit[0])
-    lasers = {i: k for i, k in _relaser(tr, full, cand, CONSENSUS_PX).items() if not own[i]}
+    lasers = {i: k for i, k in _relaser(tr, full, cand, tr.policy.consensus_px).items() if not own[i]}
     if not (moved or lasers or own.any()):
         return full, out
     old_full, old_labels = full, np.asarray(full.spot_laser)[:n_s]

@@ -81,10 +81,11 @@ def report(result: CalibrationResult, obs: Observations | None = None) -> dict:
     norm, kind, ok, view, board, laser, index = _obs_table(result)
     sigma = float(result.cov.sigma)
     point = (kind == Kind.DOT) | (kind == Kind.SPOT)
-    # beyond 5 sigmas of its own kind (the pooled sigma where the kind has none)
+    # beyond the policy's outlier sigmas of its own kind (the pooled sigma where the kind has none)
+    n_sig = result.options.robust.outlier_sigmas
     own = np.array([result.kind_sigma.get(k.label) for k in Kind], dtype=float)  # None: NaN
     own = np.where(np.isfinite(own), own, sigma)
-    outlier = ok & point & (norm > 5.0 * own[kind])
+    outlier = ok & point & (norm > n_sig * own[kind])
     per_view = {obs.views[v].name: _rms(norm[ok & point & (view == v)]) for v in range(len(obs.views))}
     boards = sorted({b for b in board if b})
     per_board = {b: _rms(norm[ok & (kind == Kind.DOT) & (board == b)]) for b in boards}
@@ -118,7 +119,7 @@ def report(result: CalibrationResult, obs: Observations | None = None) -> dict:
         "invalid": int(np.sum(~ok)),
         "outliers": outliers,
         "repairs": result.repairs,
-        "rim_outliers": int(np.sum(ok & (kind == Kind.RIM) & (norm > 5.0 * (result.kind_sigma.get("rim") or sigma)))),
+        "rim_outliers": int(np.sum(ok & (kind == Kind.RIM) & (norm > n_sig * (result.kind_sigma.get("rim") or sigma)))),
         "loss": {"kind": result.loss, "scale_px": result.scale},
     }
     cov = np.asarray(result.cov.glob)

@@ -8,6 +8,7 @@ from ..observations.problem import Packed
 from .base import CalibrationError
 from .covariance import Covariance
 from .lm import CONVERGED, MAX_STEPS, Outcome
+from .options import DEFAULT_OPTIONS, CalibrationOptions
 from .params import Masks, Params
 from .staged import Staged
 
@@ -83,6 +84,8 @@ class CalibrationResult:
     undetermined_lasers: tuple[int, ...] = ()
     # the observations as given (the report names views, boards and lasers by them)
     observations: Observations | None = None
+    # the settings it ran with
+    options: CalibrationOptions = DEFAULT_OPTIONS
 
     @property
     def rig(self) -> Rig:

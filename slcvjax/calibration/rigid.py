@@ -33,10 +33,6 @@ from .covariance import Covariance
 from .params import Masks, Params, pad_masks
 from .schur import schur_inverse
 
-MISFIT_SIGMAS = 5.0  # a board pose whose dots' median residual exceeds this many noise sigmas ...
-MISFIT_MIN_PX = 2.0  # ... and this many pixels does not fit the box
-MISFIT_ROUNDS = 3
-
 
 @dataclass(frozen=True)
 class BoxModel:

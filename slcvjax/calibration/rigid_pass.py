@@ -19,14 +19,11 @@ from .covariance import (
 )
 from .evaluate import per_observation, probe_at, solve_compiled
 from .lm import Outcome
+from .options import RobustPolicy
 from .params import Params, pad_masks, pad_problem, unpad_params
 from .passes import RTOL_FINAL
-from .repairs import MIN_BOARD_DOTS, MIN_OUTLIER_PX, OUTLIER_SIGMAS
 from .result import CalibrationResult, JointPass
 from .rigid import (
-    MISFIT_MIN_PX,
-    MISFIT_ROUNDS,
-    MISFIT_SIGMAS,
     board_pose_covariances,
     board_poses_of,
     box_model,
@@ -36,10 +33,12 @@ from .rigid import (
 )
 
 
-def _restore_spots(params: Params, model, cur: Packed, obs: Observations, left) -> tuple[set, Packed]:
+def _restore_spots(
+    params: Params, model, cur: Packed, obs: Observations, left, policy: RobustPolicy
+) -> tuple[set, Packed]:
     """The spots of ``obs`` that ``cur`` lacks or carries under another label (the free solve
     relabelled or left them out) whose own label fits at the rigid solution ``params``: within
-    :data:`OUTLIER_SIGMAS` of the spots' noise (at least :data:`MIN_OUTLIER_PX`).
+    ``policy.outlier_sigmas`` of the spots' noise (at least ``policy.min_outlier_px``).
 
     Under free board poses a board seen by a few dots (a row of four) is placed as much by its
     spots as by its dots, and a spot of its own laser can look like another's; the box places
@@ -65,7 +64,7 @@ def _restore_spots(params: Params, model, cur: Packed, obs: Observations, left) 
         return set(), cur
     pr = model.packed(cur)
     sig = sigmas_of(*per_observation(params, pr))[Kind.SPOT]
-    limit = max(OUTLIER_SIGMAS * sig, MIN_OUTLIER_PX) if np.isfinite(sig) else MIN_OUTLIER_PX
+    limit = max(policy.outlier_sigmas * sig, policy.min_outlier_px) if np.isfinite(sig) else policy.min_outlier_px
     norm, ok = probe_at(
         params,
         pr,
@@ -95,12 +94,12 @@ def _restore_spots(params: Params, model, cur: Packed, obs: Observations, left) 
     return {(obs.views[c[1]].name, c[2]) for c in fits}, out
 
 
-def rigid_refine(res: CalibrationResult, obs: Observations, group: list[str], max_steps: int) -> CalibrationResult:
-    """Pass R: the free solution ``res`` refined under the rigid box model (:mod:`slcvjax.calibration.rigid`) of
-    the boards ``group``; a board pose whose dots' median residual exceeds
-    :data:`slcvjax.calibration.rigid.MISFIT_SIGMAS` noise sigmas (and
-    :data:`slcvjax.calibration.rigid.MISFIT_MIN_PX`) does not fit the box: its dots and spots are
-    left out (recorded in the repairs) and R runs again.  Once no board misfits, the spots
+def rigid_refine(res: CalibrationResult, obs: Observations, group: list[str]) -> CalibrationResult:
+    """Pass R: the free solution ``res`` refined under the rigid box model
+    (:mod:`slcvjax.calibration.rigid`) of the boards ``group``; a board pose whose dots' median
+    residual exceeds ``misfit_sigmas`` noise sigmas (and ``misfit_min_px``, the result's
+    :class:`slcvjax.calibration.options.RobustPolicy`) does not fit the box: its dots and spots
+    are left out (recorded in the repairs) and R runs again.  Once no board misfits, the spots
     the free solve relabelled or left out are judged again at R's solution
     (:func:`_restore_spots`): those whose own label fits come back with it (their repairs
     dropped, ``box["spots_restored"]`` naming them) and R runs again.
@@ -109,10 +108,11 @@ def rigid_refine(res: CalibrationResult, obs: Observations, group: list[str], ma
     included, at ``T_cam_box @ T_box_board``), its covariance the rig's block of the rigid
     model's, and ``box`` holds the boards' poses in the box with their std."""
     t0 = time.perf_counter()
+    policy = res.options.robust
     pk = res.packed
     n_d = int(pk.counts[Kind.DOT])
     dots_per_pose = np.bincount(np.asarray(pk.dot_pose)[:n_d], minlength=pk.n_poses)
-    model = box_model(pk, group, usable=np.flatnonzero(dots_per_pose >= MIN_BOARD_DOTS))
+    model = box_model(pk, group, usable=np.flatnonzero(dots_per_pose >= policy.min_board_dots))
     params = rigid_params(model, pk.pose_keys, unstack_poses(res.params.poses), res.rig, res.params.chess)
     masks = rigid_masks(model, res.masks, pk.n_poses)
     passes, repairs = list(res.passes), list(res.repairs)
@@ -122,7 +122,7 @@ def rigid_refine(res: CalibrationResult, obs: Observations, group: list[str], ma
     while True:
         pr = model.packed(cur)
         layout, p, arr, m = pad_problem(params, pr, masks)
-        out = solve_compiled(p, arr, m, res.loss, res.scale, max_steps, RTOL_FINAL)
+        out = solve_compiled(p, arr, m, res.loss, res.scale, res.options.max_steps, RTOL_FINAL)
         params = unpad_params(layout, out.params)
         name = "R: rigid box" + (f" (after leaving out {len(left)} board pose(s))" if left else "")
         if restored_names:
@@ -141,19 +141,19 @@ def rigid_refine(res: CalibrationResult, obs: Observations, group: list[str], ma
         n_d = int(cur.counts[Kind.DOT])
         pose_d = np.asarray(cur.dot_pose)[:n_d]
         dot_norm = np.where(ok[:n_d], norm[:n_d], np.inf)
-        limit = max(MISFIT_SIGMAS * robust_sigma_of(norm, kind, ok), MISFIT_MIN_PX)
+        limit = max(policy.misfit_sigmas * robust_sigma_of(norm, kind, ok), policy.misfit_min_px)
         medians = {int(k): float(np.median(dot_norm[pose_d == k])) for k in np.unique(pose_d)}
         new = [k for k, m in medians.items() if m > limit and k not in model.outside]
         if not new and not reexamined:
             # the spots the free solve relabelled or left out, judged again under the box
             reexamined = True
-            restored, cur_new = _restore_spots(params, model, cur, obs, left)
+            restored, cur_new = _restore_spots(params, model, cur, obs, left, policy)
             if restored:
                 repairs = [r for r in repairs if not (r["kind"] == "spot" and (r["view"], r["index"]) in restored)]
                 restored_names += sorted(restored)
                 cur = cur_new
                 continue
-        if not new or misfit_rounds == MISFIT_ROUNDS:
+        if not new or misfit_rounds == policy.misfit_rounds:
             break
         misfit_rounds += 1
         for k in new:
@@ -167,7 +167,7 @@ def rigid_refine(res: CalibrationResult, obs: Observations, group: list[str], ma
                     "action": "left out",
                     "residual_px": medians[k],
                     "reason": f"does not fit the rigid box: its dots' median residual {medians[k]:.3g} px "
-                    f"beyond {limit:.3g} px ({MISFIT_SIGMAS:g} sigma, at least {MISFIT_MIN_PX:g} px)",
+                    f"beyond {limit:.3g} px ({policy.misfit_sigmas:g} sigma, at least {policy.misfit_min_px:g} px)",
                     "whole_board": True,
                 }
             )

@@ -35,6 +35,7 @@ from .board_starts import keep_better, misfit_boards, other_starts_of, turned
 from .covariance import covariance_and_noise, robust_sigma
 from .executors import solve_vmap
 from .laser_fit import aimed_lasers, fit_lasers
+from .options import CalibrationOptions
 from .params import Params, make_masks, unpad_params
 from .passes import (
     PASS_A,
@@ -55,16 +56,20 @@ from .result import CalibrationResult
 from .staged import board_poses
 from .trial import Trial
 
-AIMED_TURN_DEG = 10.0  # a laser aimed through its spots that turns by more than this is tried as another start
-
 
 class _Lockstep:
     """The trials of :func:`calibrate_lockstep` and how a pass's solves run over them: the driver
     that :data:`SCHEDULE`'s steps call (``solver`` runs a pass's solves, all trials' at once)."""
 
-    def __init__(self, trials: list[Trial], solver, freeze: set, loss: str, loss_scale, max_steps: int, bar=None):
-        self.trials, self.solver, self.freeze = trials, solver, freeze
-        self.loss, self.loss_scale, self.max_steps, self.bar = loss, loss_scale, max_steps, bar
+    def __init__(self, trials: list[Trial], solver, options: CalibrationOptions, bar=None):
+        self.trials, self.solver, self.options, self.policy = trials, solver, options, options.robust
+        self.freeze = set(options.freeze)
+        self.loss, self.loss_scale, self.max_steps, self.bar = (
+            options.robust.loss,
+            options.robust.loss_scale,
+            options.max_steps,
+            bar,
+        )
         self.every = list(range(len(trials)))
 
     def solve(self, spec: PassSpec, chosen: list[int], scale: float | None = None) -> None:
@@ -87,9 +92,9 @@ class _Lockstep:
             self.bar.set_postfix_str(spec.name.split(":")[0])
 
     def rescale(self, tr: Trial, floor: float) -> None:
-        """The trial's loss scale where it stands: the user's, else 3 x the robust noise sigma,
-        at least ``floor`` px."""
-        tr.scale = self.loss_scale or 3.0 * max(robust_sigma(tr.params, tr.pk), floor)
+        """The trial's loss scale where it stands: the user's, else ``policy.scale_sigmas`` x the
+        robust noise sigma, at least ``floor`` px."""
+        tr.scale = self.loss_scale or self.policy.scale_sigmas * max(robust_sigma(tr.params, tr.pk), floor)
 
     def other_starts(self, chosen: list[int], turned_only: bool, pass_loss: str | None = None) -> list[int]:
         """Each board pose of the ``chosen`` trials swapped for its flipped twin, or for its pose
@@ -125,7 +130,7 @@ class _Lockstep:
     def aimed_starts(self, chosen: list[int]) -> None:
         """B again from every laser aimed from the camera's centre through its spots
         (:func:`slcvjax.calibration.laser_fit.aimed_lasers`) where that turns a laser by more than
-        :data:`AIMED_TURN_DEG`; kept where it ends at a lower cost.  A laser whose spots lie
+        :attr:`RobustPolicy.aimed_turn_deg`; kept where it ends at a lower cost.  A laser whose spots lie
         along a few mm of its line at 140 mm (measured: the preset at 0.9 px, seeds 12 and 14)
         went from B into a line nearly along its boards, 82 degrees off, while a start near
         the truth ended at a lower cost."""
@@ -137,7 +142,7 @@ class _Lockstep:
                 continue
             aimed = aimed_lasers(p.rig.camera, p.rig.mirror, tr.pk, unstack_poses(p.poses), p.rig.lasers)
             cos = np.abs(np.sum(np.asarray(aimed.directions) * np.asarray(p.rig.lasers.directions), axis=1))
-            if np.any(cos < np.cos(np.radians(AIMED_TURN_DEG))):
+            if np.any(cos < np.cos(np.radians(self.policy.aimed_turn_deg))):
                 picked.append(i)
                 starts.append(Params(p.rig.with_lasers(aimed), p.poses, p.chess))
         if not picked:
@@ -172,6 +177,7 @@ class _Lockstep:
             tr.repairs,
             undetermined_lasers=tr.undetermined,
             observations=tr.obs,
+            options=self.options,
         )
 
 
@@ -206,7 +212,7 @@ def _refit_lasers(d: _Lockstep) -> None:
     spots cannot fix a line held (undetermined)."""
     for tr in d.trials:
         p = tr.params
-        fit = fit_lasers(p.rig.camera, p.rig.mirror, tr.pk, unstack_poses(p.poses), tr.obs.n_lasers)
+        fit = fit_lasers(p.rig.camera, p.rig.mirror, tr.pk, unstack_poses(p.poses), tr.obs.n_lasers, policy=d.policy)
         tr.params = Params(p.rig.with_lasers(fit.lasers), p.poses, p.chess)
         tr.undetermined = fit.held
         tr.masks = make_masks(tr.params, tr.freeze, tr.estimate, held_lasers=tr.undetermined)
@@ -270,43 +276,68 @@ def _turn_misfits(d: _Lockstep, rounds: int = 3) -> None:
 
 @dataclass(frozen=True)
 class Step:
-    """One step of :data:`SCHEDULE`: what it does, the function that does it over the trials, and
-    the parameter block whose freezing skips it (None: it always runs)."""
+    """One step of :data:`SCHEDULE`: what it does, the function that does it over the trials, the
+    parameter block whose freezing skips it (None: it always runs), and the joint passes it may
+    run (:class:`slcvjax.calibration.passes.PassSpec`)."""
 
     does: str
     run: Callable[[_Lockstep], None]
     unless_frozen: str | None = None
+    passes: tuple[PassSpec, ...] = ()
 
 
 # :func:`calibrate`'s schedule after the staged start, in order.  C keeps every kind at weight 1:
 # weighting each by its own noise (the rim's is larger in rendered images) made the lasers worse
 # from images (benchmarks/images_vs_file.py), where the dots' errors are mostly systematic.
 SCHEDULE: tuple[Step, ...] = (
-    Step("A: camera, mirror and poses, the lasers held and the spots unweighted", _first_pass),
-    Step("the boards' flips decided again; A2 where any turned", _reflip, "poses"),
+    Step("A: camera, mirror and poses, the lasers held and the spots unweighted", _first_pass, None, (PASS_A,)),
+    Step("the boards' flips decided again; A2 where any turned", _reflip, "poses", (PASS_A2,)),
     Step("the lasers refitted on that geometry, their spots relabelled", _refit_lasers, "lasers"),
-    Step("B: everything", lambda d: d.solve(PASS_B, d.every)),
-    Step("B2: B from lasers aimed through their spots, kept where better", lambda d: d.aimed_starts(d.every), "lasers"),
+    Step("B: everything", lambda d: d.solve(PASS_B, d.every), None, (PASS_B,)),
+    Step(
+        "B2: B from lasers aimed through their spots, kept where better",
+        lambda d: d.aimed_starts(d.every),
+        "lasers",
+        (PASS_B2,),
+    ),
     Step("the loss scale re-estimated", _rescale),
-    Step("every board's other starts, swapped in where better", lambda d: d.other_starts(d.every, False), "poses"),
+    Step(
+        "every board's other starts, swapped in where better",
+        lambda d: d.other_starts(d.every, False),
+        "poses",
+        (TWIN_SOLVE,),
+    ),
     Step("the spots set aside by their lines that fit now readmitted", _readmit_set_aside),
-    Step("C: the final pass", lambda d: d.solve(PASS_C, d.every)),
-    Step("C3: the gross outliers left out, C again", _leave_outliers),
-    Step("C2: badly fitting boards' other starts, C again where one turned", _turn_misfits, "poses"),
+    Step("C: the final pass", lambda d: d.solve(PASS_C, d.every), None, (PASS_C,)),
+    Step("C3: the gross outliers left out, C again", _leave_outliers, None, (PASS_C3, TWIN_SOLVE)),
+    Step(
+        "C2: badly fitting boards' other starts, C again where one turned",
+        _turn_misfits,
+        "poses",
+        (TWIN_SOLVE, PASS_C2),
+    ),
 )
 
 
-def calibrate_lockstep(
-    obs_list, camera, freeze, loss, loss_scale, max_steps, solver, bar=None, mirror=None, estimate=()
-):
-    """:func:`calibrate`'s :data:`SCHEDULE` for every observation set in step; ``solver`` runs a pass's solves."""
-    freeze = set(freeze)
+def schedule_table() -> str:
+    """:data:`SCHEDULE` as a Markdown table (the formulation page holds it; a test keeps them equal)."""
+    rows = ["| step | what it does | skipped when frozen | its joint passes |", "| --- | --- | --- | --- |"]
+    for i, step in enumerate(SCHEDULE, 1):
+        passes = "<br>".join(f"**{p.name}**: {p.describe()}" for p in step.passes) or "(no solve of its own)"
+        rows.append(f"| {i} | {step.does} | {step.unless_frozen or ''} | {passes} |")
+    return "\n".join(rows) + "\n"
+
+
+def calibrate_lockstep(obs_list, camera, options: CalibrationOptions, solver, bar=None, mirror=None, estimate=()):
+    """:func:`calibrate`'s :data:`SCHEDULE` for every observation set in step, under ``options``
+    (its rigid box aside: :mod:`slcvjax.calibration.rigid_pass`); ``solver`` runs a pass's
+    solves (:mod:`slcvjax.calibration.executors`)."""
     trials = [
-        Trial(o, camera, freeze, time.perf_counter(), fine=solver is solve_vmap, mirror=mirror, estimate=estimate)
+        Trial(o, camera, options, time.perf_counter(), fine=solver is solve_vmap, mirror=mirror, estimate=estimate)
         for o in obs_list
     ]
-    d = _Lockstep(trials, solver, freeze, loss, loss_scale, max_steps, bar)
+    d = _Lockstep(trials, solver, options, bar)
     for step in SCHEDULE:
-        if step.unless_frozen not in freeze:
+        if step.unless_frozen not in d.freeze:
             step.run(d)
     return [d.result(tr) for tr in trials]

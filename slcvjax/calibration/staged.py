@@ -44,6 +44,7 @@ from ..observations.problem import (
 from ..support.persist import PersistentJit
 from .base import CalibrationError, StageReport, rays_with_pixel_metric
 from .laser_fit import fit_lasers
+from .options import DEFAULT_POLICY, RobustPolicy
 
 _CV_LOCK = threading.Lock()
 
@@ -395,9 +396,16 @@ class Staged:
         return Rig(self.camera, self.mirror, self.lasers)
 
 
-def staged(obs: Observations, camera: Camera | None = None, pk: Packed | None = None, mirror=None) -> Staged:
+def staged(
+    obs: Observations,
+    camera: Camera | None = None,
+    pk: Packed | None = None,
+    mirror=None,
+    policy: RobustPolicy = DEFAULT_POLICY,
+) -> Staged:
     """Run the four stages.  ``camera``: a known camera (skips the intrinsics stage);
-    ``mirror``: a known mirror pose and shape (skips the rim stage)."""
+    ``mirror``: a known mirror pose and shape (skips the rim stage); ``policy``: the lasers'
+    consensus and repair thresholds (:class:`slcvjax.calibration.options.RobustPolicy`)."""
     pk = pack(obs) if pk is None else pk
     if not obs.views:
         raise CalibrationError("views: no catadioptric views")
@@ -435,7 +443,7 @@ def staged(obs: Observations, camera: Camera | None = None, pk: Packed | None = 
         obs, n_set = assign_spot_boards(obs, camera, mirror, view_poses)
         pk = pack(obs)
         rep_p.notes.append(f"{n_set} of {n_open} spots without a board put on the first board plane their ray meets")
-    fit = fit_lasers(camera, mirror, pk, poses, obs.n_lasers)
+    fit = fit_lasers(camera, mirror, pk, poses, obs.n_lasers, policy=policy)
     return Staged(camera, mirror, fit.lasers, poses, chess, reports + [rep_m, rep_p, fit.report], pk, fit.held)
 
 

@@ -10,6 +10,7 @@ from the file alone.
   its shape and dtype, and the rows' sources (view, board, index);
 - ``solution``: every leaf of the solver's unknowns (:class:`slcvjax.calibration.params.Params`) at
   full precision, and the masks of what was estimated;
+- ``options``: the :class:`slcvjax.calibration.options.CalibrationOptions` it ran with;
 - ``loss``, ``scale``: the robust loss and its scale (px) of the final pass;
 - ``kind_sigma``: the noise sigma of each kind of observation (px; None where a kind had too few
   free rows);
@@ -45,6 +46,7 @@ from ..observations.problem import KIND_NAMES, Packed
 from .base import StageReport
 from .covariance import Covariance, covariance_and_noise
 from .lm import Outcome
+from .options import CalibrationOptions
 from .params import Masks, Params
 from .result import CalibrationResult, JointPass
 from .staged import Staged
@@ -131,6 +133,7 @@ def problem_json(result: CalibrationResult) -> dict:
             "leaves": [array_json(x) for x in leaves],
         },
         "masks": {"glob": array_json(result.masks.glob), "blocks": array_json(result.masks.blocks)},
+        "options": result.options.to_json(),
         "loss": result.loss,
         "scale": float(result.scale),
         "kind_sigma": {
@@ -243,6 +246,7 @@ def load_result(path: str | os.PathLike) -> CalibrationResult:
     m = _get(prob, "masks", "problem", source)
     masks = Masks(_array(m["glob"], "problem.masks.glob", source), _array(m["blocks"], "problem.masks.blocks", source))
     loss, scale = str(prob["loss"]), float(prob["scale"])
+    options = CalibrationOptions.from_json(_get(prob, "options", "problem", source), f"{source}: problem.options")
     stages = _get(doc, "stages", "", source)
     joint = _get(stages, "joint", "stages", source)
     passes = [
@@ -287,4 +291,5 @@ def load_result(path: str | os.PathLike) -> CalibrationResult:
         box,
         cal.undetermined_lasers,
         obs,
+        options,
     )

@@ -11,6 +11,7 @@ from ..geometry.pose import Pose
 from ..observations.formats import Observations
 from ..observations.problem import Kind, Layout, Packed, pack, stack_poses
 from .base import CalibrationError
+from .options import CalibrationOptions
 from .params import Params, make_masks
 from .result import JointPass
 from .staged import staged
@@ -35,9 +36,12 @@ def chess_start(obs: Observations, pk: Packed, cam: Camera, known: dict[int, Pos
 class Trial:
     """One calibration's state between the passes of :func:`calibrate_lockstep`."""
 
-    def __init__(self, obs, camera, freeze, t0, fine: bool = False, mirror=None, estimate=()):
+    def __init__(self, obs, camera, options: CalibrationOptions, t0, fine: bool = False, mirror=None, estimate=()):
         self.obs, self.t0 = obs, t0
-        st = staged(obs, camera=camera, pk=pack(obs), mirror=mirror)
+        self.options = options
+        self.policy = options.robust
+        freeze = set(options.freeze)
+        st = staged(obs, camera=camera, pk=pack(obs), mirror=mirror, policy=self.policy)
         self.st, self.pk = st, st.packed  # spots without a board have one now
         self.t_staged = time.perf_counter() - t0
         if camera is not None and not st.chess_poses:

@@ -46,7 +46,18 @@ def run(args) -> int:
         if start.mirror is None:
             raise FormatError(f"{args.start_from}: mirror: a camera-only calibration has no mirror to start from")
         camera, mirror = start.camera, start.mirror
-    freeze = tuple(f for f in (args.freeze or "").split(",") if f)
+    freeze = tuple(f for f in args.freeze.split(",") if f) if args.freeze else None
+    options = None
+    if args.options:
+        import json
+
+        from ..calibration.options import CalibrationOptions
+
+        try:
+            doc = json.loads(Path(args.options).read_text())
+        except (OSError, ValueError) as e:
+            raise FormatError(f"{args.options}: (file): cannot read options ({e})") from None
+        options = CalibrationOptions.from_json(doc, args.options)
     results = []
     for path, obs in zip(inputs, observations, strict=True):
         t0 = time.perf_counter()
@@ -59,6 +70,7 @@ def run(args) -> int:
                 loss=args.loss,
                 loss_scale=args.loss_scale,
                 rigid=args.rigid,
+                options=options,
                 correct_centroids=not args.raw_centroids,
             )
         except CalibrationError as e:
