@@ -11,8 +11,8 @@ README = (ROOT / "README.md").read_text()
 
 def test_the_readme_starts_with_the_quick_start_and_its_test_command_is_cis():
     lines = README.splitlines()
-    assert lines[0] == "## Quick start"
-    quick = README.split("\n## ", 2)[0]
+    assert lines[0] == "# slcvjax" and lines[2] == "## Quick start"  # the title, then the quick start
+    quick = README.split("\n## ", 2)[1]
     blocks = re.findall(r"```bash\n(.*?)\n```", quick, flags=re.S)
     assert blocks == [
         "python3 -m venv .venv && .venv/bin/pip install -e '.[test]' && .venv/bin/slcvjax demo",
