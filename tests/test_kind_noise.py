@@ -9,7 +9,6 @@ from slcvjax.calibration.covariance import covariance_of, kind_noise, kind_sigma
 from slcvjax.calibration.linearise import Linearisation
 from slcvjax.calibration.params import Masks
 from slcvjax.calibration.schur import Normal, leverage_share, leverage_shares
-from slcvjax.geometry.rig import laser_columns
 from slcvjax.observations.simulate import make_scene, simulate
 
 jax.config.update("jax_enable_x64", True)
@@ -112,7 +111,7 @@ def test_each_kind_sigma_is_its_noise():
         # the lasers' covariance takes the spots' own noise, 2.5x the dots' and 6x the rim's:
         # above what one pooled sigma gives
         pooled = covariance_of(res.params, res.packed, res.masks, res.loss, res.scale, sigma=float(res.cov.sigma))
-        g = laser_columns(0).start
+        g = res.rig.layout.elements[0].start
         assert np.trace(res.cov.glob[g:, g:]) > 1.5 * np.trace(pooled.glob[g:, g:])
     # a sigma over f free rows has a relative std of about 1 / sqrt(2 f): within 4 of those
     tol = 4.0 / np.sqrt(2.0 * np.mean(free, axis=0) * len(seeds))

@@ -99,13 +99,12 @@ def test_working_point_foot_and_the_tangent_columns():
     assert abs(np.dot(x_ref - np.asarray(foot), u)) < 1e-9
     np.testing.assert_allclose(direction, u)
     # laser 1's tangent columns move laser 1 alone, as at_working_point's own increment does
-    from slcvjax.geometry.rig import laser_columns
     from slcvjax.observations.simulate import paper_rig
 
     rig = paper_rig(n)
     delta = np.zeros(rig.tangent_dim)
     step = np.array([0.3, -0.2, 0.01, 0.02])
-    delta[laser_columns(1)] = step
+    delta[rig.layout.elements[1]] = step
     moved = rig.retract(jnp.asarray(delta))
     np.testing.assert_array_equal(np.asarray(moved.lasers.points)[[0, 2]], np.asarray(rig.lasers.points)[[0, 2]])
     np.testing.assert_array_equal(np.asarray(moved.camera.K), np.asarray(rig.camera.K))
@@ -113,3 +112,22 @@ def test_working_point_foot_and_the_tangent_columns():
     f2, d2 = rig.lasers.at_working_point(1, x_ref, step)
     np.testing.assert_allclose(f1, f2, atol=1e-12)
     np.testing.assert_allclose(d1, d2, atol=1e-15)
+
+
+def test_the_tangent_layout_comes_from_the_elements():
+    from slcvjax.calibration.params import element_columns
+    from slcvjax.geometry.rig import tangent_layout
+    from slcvjax.observations.simulate import paper_rig
+
+    rig = paper_rig(5)
+    lay = rig.layout
+    assert lay.camera == slice(0, 9) and lay.mirror == slice(9, 15)
+    assert lay.elements == tuple(slice(15 + 4 * i, 19 + 4 * i) for i in range(5)) and lay.dim == rig.tangent_dim == 35
+    # elements of other sizes (a plane of light 3, a cone of light 6) sit one after the other
+    mixed = tangent_layout((4, 3, 6))
+    assert mixed.elements == (slice(15, 19), slice(19, 22), slice(22, 28)) and mixed.dim == 28
+    np.testing.assert_array_equal(mixed.element_dofs, [4, 3, 6])
+    # the rows' columns, from traced element indices: each element's own, the spare column past them
+    cols = np.asarray(jax.jit(lambda e: element_columns(rig, e, 6, 99))(jnp.asarray([0, 4, 2])))
+    np.testing.assert_array_equal(cols[:, :4], [[15, 16, 17, 18], [31, 32, 33, 34], [23, 24, 25, 26]])
+    assert np.all(cols[:, 4:] == 99)

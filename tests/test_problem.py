@@ -3,7 +3,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from slcvjax.geometry.rig import laser_columns
 from slcvjax.observations.problem import (
     Layout,
     bucket,
@@ -44,7 +43,9 @@ def test_residuals_vanish_at_the_truth_and_grow_away_from_it(packed_truth):
     rs, oks = g(truth.rig, poses, packed)
     assert bool(np.all(okd)) and bool(np.all(oks))
     assert float(jnp.abs(rd).max()) < 1e-9 and float(jnp.abs(rs).max()) < 1e-9
-    moved = truth.rig.retract(jnp.zeros(truth.rig.tangent_dim).at[laser_columns(0).start].set(0.5))  # laser 0: 0.5 mm
+    moved = truth.rig.retract(
+        jnp.zeros(truth.rig.tangent_dim).at[truth.rig.layout.elements[0].start].set(0.5)
+    )  # laser 0: 0.5 mm
     rs2, _ = g(moved, poses, packed)
     hit = np.asarray(packed.spot_laser) == 0
     assert float(jnp.abs(rs2[hit]).min()) > 0.01

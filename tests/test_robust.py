@@ -12,7 +12,6 @@ from slcvjax.calibration.calibrate import calibrate
 from slcvjax.calibration.laser_fit import fit_lasers
 from slcvjax.calibration.report import report
 from slcvjax.calibration.result import require_determined
-from slcvjax.geometry.rig import laser_columns
 from slcvjax.observations.problem import pack
 from slcvjax.observations.simulate import make_scene, simulate
 from slcvjax.support.safe import std_of_variance
@@ -182,7 +181,7 @@ def test_negative_variances_are_undetermined_not_zero(clean_result, noisy):
     assert np.isnan(std_of_variance([4.0, -0.5])[1])
     res = copy.copy(clean_result)
     cov = np.array(res.cov.glob)
-    sl = laser_columns(1)
+    sl = res.rig.layout.elements[1]
     cov[sl, sl] = -np.abs(cov[sl, sl])
     res.cov = res.cov._replace(glob=cov)
     pos, ang = laser_std(res.rig, cov, np.zeros((res.rig.lasers.n, 3)))

@@ -11,7 +11,6 @@ from ..geometry.lasers import Lasers, line_plane_intersection
 from ..geometry.pose import Pose
 from ..geometry.rig import (
     Rig,
-    laser_columns,
 )
 from ..observations.formats import Calibration, Observations
 from ..observations.problem import Packed, pack, stack_poses, unstack_poses
@@ -55,9 +54,10 @@ def laser_std(rig: Rig, cov_glob: np.ndarray, x_ref: np.ndarray) -> tuple[np.nda
     pos, ang = np.zeros(n), np.zeros(n)
     cov_glob = np.asarray(cov_glob)
     for i in range(n):
-        sl = laser_columns(i)
+        sl = rig.layout.elements[i]
         c = cov_glob[sl, sl]
-        j = np.asarray(jax.jacfwd(lambda d, i=i: laser_offset(rig.lasers, i, jnp.asarray(x_ref[i]), d))(jnp.zeros(4)))
+        zero = jnp.zeros(sl.stop - sl.start)
+        j = np.asarray(jax.jacfwd(lambda d, i=i: laser_offset(rig.lasers, i, jnp.asarray(x_ref[i]), d))(zero))
         # a block that is not positive: the data do not determine this laser (NaN, not 0)
         definite = bool(np.all(np.isfinite(c))) and (
             np.linalg.eigvalsh(0.5 * (c + c.T)).min() >= -1e-9 * max(np.abs(c).max(), 1e-300)

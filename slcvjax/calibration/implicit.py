@@ -37,11 +37,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ..geometry.rig import laser_columns
 from ..observations.problem import Kind, Layout, Packed, kind_weights, map_rows
 from ..support.persist import PersistentJit
 from .losses import LOSSES, robust_cost
-from .params import N_CAM, N_CM, N_LAS, Masks, Params, pad_problem, unpad_params
+from .params import N_CAM, N_CM, N_LAS, Masks, Params, element_columns, pad_problem, unpad_params
 from .residuals import camera_mirror, chess_residual, dot_residual, rim_scale, rim_value, spot_residual
 from .schur import schur_solve
 
@@ -156,7 +155,7 @@ def _observation_blocks(params: Params, pk: Packed, loss: str, scale, kind_weigh
         return _second_order(f)(r[:5], lp[i], ld[i], R[p], t[p])
 
     gr, h, m = blocks(spot, pk.counts[Kind.SPOT], rows, las.points, las.directions, params.poses.R, params.poses.t)
-    lidx = N_CM + N_LAS * pk.spot_laser[:, None] + jnp.arange(N_LAS)[None, :]
+    lidx = element_columns(params.rig, pk.spot_laser, N_LAS, g)
     gi = jnp.concatenate([jnp.broadcast_to(cm, (n, N_CM)), lidx], axis=1)
     out.append((gr, h, m, gi, pk.spot_pose))
     # rim pixels: [camera, mirror], data [pixel]
@@ -468,7 +467,7 @@ def sensitivity(result, x_ref: np.ndarray | None = None) -> Sensitivity:
         def comps(d4, i=i):
             return jnp.concatenate(rig.lasers.at_working_point(i, x_ref[i], d4))
 
-        j = np.asarray(jax.jacfwd(comps)(jnp.zeros(4)))  # (6, 4)
-        sl = laser_columns(i)
+        sl = rig.layout.elements[i]
+        j = np.asarray(jax.jacfwd(comps)(jnp.zeros(sl.stop - sl.start)))  # (6, 4)
         lp[i], ld[i] = j[:3] @ xg[sl], j[3:] @ xg[sl]
     return Sensitivity(xg, kind, index, axis, lp, ld, params, steps)

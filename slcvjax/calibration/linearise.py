@@ -18,7 +18,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ..observations.problem import Kind, Packed, kind_weights
 from .losses import ObservationTable, robust_observations
-from .params import N_CAM, N_CM, N_LAS, N_MIR, Masks, Params
+from .params import N_CAM, N_CM, N_LAS, N_MIR, Masks, Params, element_columns
 from .residuals import (
     chess_residual,
     dot_point,
@@ -137,7 +137,7 @@ def observation_groups(params: Params, pk: Packed, with_jac: bool, rim_norm: Arr
                 )
         r, j, ok = jax.vmap(lambda x, px: lin(point_residual, N_CM + 3, cam, mir, x, px))(x, px)
         j = jnp.concatenate([j[:, :, :N_CM], j[:, :, N_CM:] @ jx], axis=2)
-        lidx = jnp.where(spot[:, None], N_CM + N_LAS * laser[:, None] + jnp.arange(N_LAS)[None, :], g)
+        lidx = jnp.where(spot[:, None], element_columns(rig, laser, N_LAS, g), g)
         parts = [jnp.broadcast_to(cm_idx, (r.shape[0], N_CM)), lidx]
         if box:
             parts.append(jnp.where((in_box < n_box)[:, None], rig.tangent_dim + 6 * in_box[:, None] + jnp.arange(6), g))

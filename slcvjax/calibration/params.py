@@ -11,16 +11,19 @@ them from block names.  :func:`pad_problem` pads a problem to its shape buckets
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
 from ..geometry.conic import ConicMirror
+from ..geometry.lasers import Lasers
 from ..geometry.pose import Pose
-from ..geometry.rig import CAMERA_DOF, LASER_DOF, MIRROR_DOF, Rig
+from ..geometry.rig import CAMERA_DOF, MIRROR_DOF, Rig
 from ..observations.problem import Layout, Packed
 from ..support.persist import committed
 
-N_CAM, N_MIR, N_LAS = CAMERA_DOF, MIRROR_DOF, LASER_DOF
+N_CAM, N_MIR = CAMERA_DOF, MIRROR_DOF
+N_LAS = Lasers.DOF  # a point laser's unknowns: the local columns of its spots' residuals
 
 
 N_CM = N_CAM + N_MIR
@@ -101,8 +104,8 @@ def make_masks(
     bad_l = [i for i in held_lasers if not 0 <= i < n_l]
     if bad_l:
         raise ValueError(f"held laser {bad_l[0]} is not one of the rig's {n_l} lasers")
-    las = np.full((n_l, N_LAS), 0.0 if "lasers" in freeze else 1.0)
-    las[list(held_lasers)] = 0.0
+    dofs = params.rig.layout.element_dofs
+    las = [np.full(dof, 0.0 if "lasers" in freeze or i in held_lasers else 1.0) for i, dof in enumerate(dofs)]
     glob = np.concatenate(
         [
             np.full(N_CAM, 0.0 if "camera" in freeze else 1.0),
@@ -110,7 +113,7 @@ def make_masks(
             [0.0 if "mirror" in freeze or params.rig.camera.telecentric else 1.0],
             np.full(2, 0.0 if {"mirror", "mirror_tilt"} & set(freeze) else 1.0),
             [1.0 if shape_free else 0.0],
-            las.ravel(),
+            *las,
         ]
     )
     p, c = params.poses.t.shape[0], params.chess.t.shape[0]
@@ -118,6 +121,19 @@ def make_masks(
         [np.full(p, 0.0 if "poses" in freeze else 1.0), np.full(c, 0.0 if "chess_poses" in freeze else 1.0)]
     )
     return Masks(glob, blocks)  # float64 host arrays: strongly typed, so every pass shares one compilation
+
+
+def element_columns(rig: Rig, element, width: int, none: int):
+    """The global columns of each row's structured-light element, from the rig's tangent layout
+    (:attr:`slcvjax.geometry.rig.Rig.layout`): ``element`` (K,) element indices (traced or not),
+    returns (K, ``width``) int columns, the element's own columns first and ``none`` (the
+    normal equations' spare column) past its unknowns."""
+    lay = rig.layout
+    starts = jnp.asarray(np.append(lay.element_starts, none))  # a spare entry: no gather from an empty array
+    dofs = jnp.asarray(np.append(lay.element_dofs, 0))
+    k = jnp.arange(width)[None, :]
+    e = jnp.asarray(element)[:, None]
+    return jnp.where(k < dofs[e], starts[e] + k, none)
 
 
 def pad_params(layout: Layout, params: Params) -> Params:

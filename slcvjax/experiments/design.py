@@ -44,7 +44,7 @@ from ..calibration.schur import normal_equations, schur_inverse
 from ..geometry.lasers import line_plane_intersection
 from ..geometry.mirror import project_through_mirror
 from ..geometry.pose import Pose, so3_exp
-from ..geometry.rig import Rig, laser_columns, project_rim
+from ..geometry.rig import Rig, project_rim
 from ..observations.problem import Packed, bucket, pad_rows
 from ..observations.simulate import PAPER_HALF_WIDTH, PAPER_ROTATION_DEG, PAPER_TRANSLATION_MM, Scene, box_walls
 from ..support.persist import PersistentJit
@@ -248,8 +248,10 @@ def _predict(views, rig, T_bw, chess, pk, sigma, present):
     """Per laser: predicted position variance (mm^2) at the working point and direction variance (rad^2)."""
     cov, w_dot, w_spot, x_ref = calibration_covariance(views, rig, T_bw, chess, pk, sigma, present)
 
+    starts = jnp.asarray(rig.layout.element_starts)
+
     def laser(i):
-        s = laser_columns(i).start  # a traced index: the block by a dynamic slice
+        s = starts[i]  # a traced index: the block by a dynamic slice
         c = jax.lax.dynamic_slice(cov, (s, s), (N_LAS, N_LAS))
         j = jax.jacfwd(lambda d: laser_offset(rig.lasers, i, x_ref[i], d))(jnp.zeros(N_LAS))
         return jnp.trace(j @ c @ j.T), c[2, 2] + c[3, 3]

@@ -31,7 +31,7 @@ from ..calibration.bound import cramer_rao, laser_errors
 from ..calibration.calibrate import calibrate_many
 from ..calibration.executors import resolve_batch
 from ..calibration.result import require_determined
-from ..geometry.rig import Rig, laser_columns
+from ..geometry.rig import Rig
 from ..observations.formats import write_json_atomic, write_text_atomic
 from ..observations.simulate import make_scene, simulate
 from ..support.safe import std_of_variance
@@ -57,8 +57,8 @@ def laser_component_std(rig: Rig, cov_glob: np.ndarray, x_ref: np.ndarray) -> np
         return jnp.concatenate(rig.lasers.at_working_point(i, x_ref[i], delta4))
 
     for i in range(rig.lasers.n):
-        sl = laser_columns(i)
-        j = np.asarray(jax.jacfwd(comps)(jnp.zeros(4), i))
+        sl = rig.layout.elements[i]
+        j = np.asarray(jax.jacfwd(comps)(jnp.zeros(sl.stop - sl.start), i))
         out[i] = std_of_variance(np.diag(j @ np.asarray(cov_glob)[sl, sl] @ j.T))
     return out
 

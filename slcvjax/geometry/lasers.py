@@ -1,5 +1,7 @@
 """Laser lines and where their spots fall on a planar board."""
 
+from typing import ClassVar
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -17,9 +19,12 @@ class Lasers(eqx.Module):
         points: (N, 3) a point of each line.
         directions: (N, 3) unit direction of each beam (the light travels along +direction).
 
-    A line has 4 degrees of freedom; :meth:`retract` takes an (N, 4) increment:
+    A line has 4 degrees of freedom (:data:`DOF`); :meth:`retract` takes an (N, 4) increment:
     two for the point moved across the beam, two for the direction tilted.
     """
+
+    KIND: ClassVar[str] = "point"  # the element kind, as the calibration file names it
+    DOF: ClassVar[int] = 4  # unknowns per element: its columns in the rig's tangent
 
     points: Float[Array, "n 3"]
     directions: Float[Array, "n 3"]

@@ -1,6 +1,7 @@
 """The rig: camera, cone mirror and lasers as one pytree, and its forward model."""
 
 import functools
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -15,10 +16,10 @@ from .pose import Pose
 
 CAMERA_DOF = 9
 MIRROR_DOF = 6  # the pose (vertex 3, axis tilt 2) and one of the shape (see the mirrors' retract)
-LASER_DOF = 4
 # the rig's tangent, column by column (:meth:`Rig.retract`'s order; the calibration's covariance
 # and every Jacobian over the rig): the camera (fx, fy, cx, cy, then the distortion, ``slcvjax.observations.formats``'s
-# order), the mirror's vertex (mm), its axis tilt (rad), its shape, then the lasers (laser_columns)
+# order), the mirror's vertex (mm), its axis tilt (rad), its shape, then the structured-light
+# elements (:class:`TangentLayout`)
 CAMERA_COLUMNS = slice(0, CAMERA_DOF)
 CAMERA_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 APEX_COLUMNS = slice(CAMERA_DOF, CAMERA_DOF + 3)
@@ -27,19 +28,54 @@ SHAPE_COLUMN = CAMERA_DOF + MIRROR_DOF - 1  # the mirror's shape (a conic's cons
 POSE_DOF = 6
 
 
-def laser_columns(i: int) -> slice:
-    """Laser ``i``'s four columns in the rig's tangent (:meth:`Rig.retract`'s order: camera,
-    mirror, then the lasers' point offset e1, e2 and direction tilt e1, e2): in the calibration's
-    covariance and in every Jacobian over the rig."""
-    start = CAMERA_DOF + MIRROR_DOF + LASER_DOF * i
-    return slice(start, start + LASER_DOF)
+class TangentLayout(NamedTuple):
+    """Where each part of a rig sits in its flat tangent (:meth:`Rig.retract`'s order): the camera,
+    the mirror, then each structured-light element with as many columns as its kind has unknowns
+    (a point laser 4: its point moved across the beam e1, e2, mm, and its direction tilted e1, e2,
+    rad).  The calibration's covariance, the bound, the report, measurement, design and the sweep
+    take an element's columns from here.
+
+    Attributes:
+        camera: the camera's columns (9).
+        mirror: the mirror's columns (6: vertex 3, axis tilt 2, shape 1).
+        elements: each element's columns, in the rig's order.
+    """
+
+    camera: slice
+    mirror: slice
+    elements: tuple[slice, ...]
+
+    @property
+    def dim(self) -> int:
+        """The tangent's length."""
+        return self.elements[-1].stop if self.elements else self.mirror.stop
+
+    @property
+    def element_starts(self) -> np.ndarray:
+        """(N,) each element's first column (int64; for a traced element index)."""
+        return np.asarray([sl.start for sl in self.elements], dtype=np.int64)
+
+    @property
+    def element_dofs(self) -> np.ndarray:
+        """(N,) each element's number of columns (int64)."""
+        return np.asarray([sl.stop - sl.start for sl in self.elements], dtype=np.int64)
+
+
+def tangent_layout(element_dofs) -> TangentLayout:
+    """The :class:`TangentLayout` of a rig whose elements have ``element_dofs`` unknowns each."""
+    start, elements = CAMERA_DOF + MIRROR_DOF, []
+    for dof in element_dofs:
+        elements.append(slice(start, start + int(dof)))
+        start += int(dof)
+    return TangentLayout(CAMERA_COLUMNS, slice(CAMERA_DOF, CAMERA_DOF + MIRROR_DOF), tuple(elements))
 
 
 class Rig(eqx.Module):
     """Everything calibrated about the sensor: camera, mirror and lasers.
 
-    ``tangent_dim`` is ``9 + 6 + 4 N``; :meth:`retract` takes a flat increment
-    in the order camera (9), mirror (6: vertex, axis tilt, shape), lasers (N x 4, row-major).
+    ``tangent_dim`` is ``9 + 6`` plus each element's unknowns (:attr:`layout`); :meth:`retract`
+    takes a flat increment in the order camera (9), mirror (6: vertex, axis tilt, shape), then
+    the elements, each its own columns (a point laser 4).
     A camera-only rig (:meth:`camera_only`: a plain camera's calibration) has no mirror and
     no lasers; the functions that look through the mirror need one.
     """
@@ -58,15 +94,20 @@ class Rig(eqx.Module):
         return Rig(self.camera, self.mirror, lasers)
 
     @property
+    def layout(self) -> TangentLayout:
+        """Where the camera, the mirror and each element sit in the tangent."""
+        return tangent_layout((self.lasers.DOF,) * self.lasers.n)
+
+    @property
     def tangent_dim(self) -> int:
-        return CAMERA_DOF + MIRROR_DOF + LASER_DOF * self.lasers.n
+        return self.layout.dim
 
     def retract(self, delta: Float[Array, " d"]) -> "Rig":
         c, m = CAMERA_DOF, CAMERA_DOF + MIRROR_DOF
         return Rig(
             self.camera.retract(delta[:c]),
             None if self.mirror is None else self.mirror.retract(delta[c:m]),
-            self.lasers.retract(delta[m:].reshape(-1, LASER_DOF)),
+            self.lasers.retract(delta[m:].reshape(-1, self.lasers.DOF)),
         )
 
 

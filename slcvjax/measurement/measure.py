@@ -40,7 +40,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ..geometry.mirror import back_project, project_through_mirror
-from ..geometry.rig import Rig, laser_columns
+from ..geometry.rig import Rig
 from ..observations.problem import bucket, map_padded, map_rows, pad_rows, padded_lasers
 from ..support.persist import PersistentJit
 from ..support.safe import orthonormal_basis, safe_arccos, safe_div, safe_norm, std_of_variance
@@ -299,7 +299,7 @@ def _laser_stds(rig: Rig, rig_cov: np.ndarray | None) -> tuple[np.ndarray, np.nd
     off_std, dir_std = np.zeros(rig.lasers.n), np.zeros(rig.lasers.n)
     if rig_cov is not None:
         for k in range(rig.lasers.n):
-            c = np.diag(rig_cov)[laser_columns(k)]
+            c = np.diag(rig_cov)[rig.layout.elements[k]]
             off_std[k], dir_std[k] = std_of_variance(c[0] + c[1]), std_of_variance(c[2] + c[3])
     return off_std, dir_std
 

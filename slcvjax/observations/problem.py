@@ -29,7 +29,7 @@ from jaxtyping import Array, Bool, Float, Int
 from ..geometry.lasers import Lasers, line_plane_intersection
 from ..geometry.mirror import project_through_mirror
 from ..geometry.pose import Pose
-from ..geometry.rig import CAMERA_DOF, LASER_DOF, MIRROR_DOF, Rig
+from ..geometry.rig import Rig, tangent_layout
 from ..support.persist import committed
 from ..support.recent import Recent
 from .formats import Observations
@@ -373,7 +373,8 @@ class Layout(NamedTuple):
         if self.lasers is None:
             return 0, 0
         n, cap = self.lasers
-        return CAMERA_DOF + MIRROR_DOF + LASER_DOF * n, LASER_DOF * (cap - n)
+        start = tangent_layout((Lasers.DOF,) * n).dim
+        return start, tangent_layout((Lasers.DOF,) * cap).dim - start
 
     def pad_lasers(self, lasers: Lasers) -> Lasers:
         """The rig's lasers padded with copies of the first (held, with no spot: see :func:`pad_glob`)."""
