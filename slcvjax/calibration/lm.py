@@ -18,7 +18,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Bool, Float, Int
 
 from ..observations.problem import (
     Packed,
@@ -56,6 +56,25 @@ LAMBDA_START = 1e-5
 
 # damping under which a step's predicted decrease stands for the Gauss-Newton step's
 PREDICT_LAMBDA = 1e-3
+
+
+class LMState(NamedTuple):
+    """The loop's state between two iterations of :func:`solve` (immutable: each iteration
+    returns a new one)."""
+
+    params: Params  # the current solution
+    lin: Linearisation  # the problem linearised there
+    cost: Float[Array, ""]  # its robust cost
+    initial_cost: Float[Array, ""]  # the cost at the start
+    damping: Float[Array, ""]  # Levenberg-Marquardt's lambda, relative to the normal matrix's diagonal
+    steps: Int[Array, ""]  # the steps tried so far
+    done: Bool[Array, ""]
+    code: Int[Array, ""]  # how it ends (:class:`Outcome`), where done
+    trial: Params  # the point the next iteration tries
+    dg: Float[Array, " G"]  # the step to it: global block
+    dp: Float[Array, "NB 6"]  # and pose blocks
+    predicted: Float[Array, ""]  # the cost decrease the quadratic model predicts for that step
+    pending: Bool[Array, ""]  # False only before the start has been linearised
 
 
 class LMResult(NamedTuple):
@@ -108,8 +127,21 @@ def solve(
     # with it: an accepted step, most of them (measured: 77-100 % of a calibration's steps),
     # needs no other evaluation, a rejected one wastes the Jacobian.  The residual function
     # with derivatives is traced once, in this one place.
-    def body(s):
-        p, lin, cost, c0, lam, it, _, code, q, dg, dp, pred, pending = s
+    def body(s: LMState) -> LMState:
+        p, lin, cost, c0, lam, it, code, q, dg, dp, pred, pending = (
+            s.params,
+            s.lin,
+            s.cost,
+            s.initial_cost,
+            s.damping,
+            s.steps,
+            s.code,
+            s.trial,
+            s.dg,
+            s.dp,
+            s.predicted,
+            s.pending,
+        )
         lin_q, c_q = lin_at(q)
         ok = jnp.isfinite(c_q) & (c_q < cost)
         rho = (cost - c_q) / jnp.maximum(pred, 1e-300)
@@ -143,11 +175,11 @@ def solve(
         settled = take & jnp.isfinite(cost) & (lam <= PREDICT_LAMBDA) & (it < max_steps) & (pred <= rtol * cost)
         code = jnp.where(settled, CONVERGED, code)
         done = (pending & (converged | stalled)) | settled | (it >= max_steps)
-        return p, lin, cost, c0, lam, it, done, code, p.retract(dg, dp), dg, dp, pred, jnp.asarray(True)
+        return LMState(p, lin, cost, c0, lam, it, done, code, p.retract(dg, dp), dg, dp, pred, jnp.asarray(True))
 
     lin0 = jax.tree_util.tree_map(jnp.zeros_like, jax.eval_shape(lin_at, params)[0])
     inf = jnp.asarray(jnp.inf)
-    state = (
+    state = LMState(
         params,
         lin0,
         inf,
@@ -162,5 +194,5 @@ def solve(
         jnp.asarray(1.0),  # the start's: no step was tried
         jnp.asarray(False),
     )
-    p, lin, cost, c0, _, it, _, code, *_ = jax.lax.while_loop(lambda s: ~s[6], body, state)
-    return LMResult(p, cost, c0, it, code, lin)
+    end = jax.lax.while_loop(lambda s: ~s.done, body, state)
+    return LMResult(end.params, end.cost, end.initial_cost, end.steps, end.code, end.lin)
