@@ -48,6 +48,7 @@ from ..geometry.rig import Rig, project_rim
 from ..observations.problem import Packed, bucket, pad_rows
 from ..observations.simulate import PAPER_HALF_WIDTH, PAPER_ROTATION_DEG, PAPER_TRANSLATION_MM, Scene, box_walls
 from ..support.persist import PersistentJit
+from .descent import Accepted, adam_descent
 
 N_RIM = 90  # rim edge pixels per view, as the simulator writes
 MIN_DOTS = 4  # visible dots a board needs in a view for its pose
@@ -416,10 +417,10 @@ def optimise(
 ) -> DesignResult:
     """Sensor poses within the plan's motion range that minimise the predicted laser error.
 
-    Adam (:func:`optax.scale_by_adam`) on ``u`` (pose = range * tanh(u)), each step shortened
-    until the objective, re-evaluated at the new poses (visibility included), goes down, views
-    whose visibility the step changes held in place (:func:`_line_search`); where no step helps, Adam starts
-    afresh once.  Stops after ``steps`` accepted steps or when a fresh start does not help.
+    Adam (:func:`slcvjax.experiments.descent.adam_descent`) on ``u`` (pose = range * tanh(u)), each
+    step shortened until the objective, re-evaluated at the new poses (visibility included), goes
+    down, views whose visibility the step changes held in place (:func:`_line_search`); where no
+    step helps, Adam starts afresh once.  Stops after ``steps`` accepted steps or when a fresh start does not help.
     """
     t0 = time.perf_counter()
     c = Compiled(plan)
@@ -429,34 +430,25 @@ def optimise(
     pw = jnp.asarray(float(position_weight))
     f, grad = c.value_and_grad(u, ref_pos, ref_ang, pw)
     t_compile = time.perf_counter() - t0
-    history = [float(f)]
-    adam = optax.scale_by_adam(b1=0.9, b2=0.999, eps=1e-12)
-    state = adam.init(u)
-    bar = None
-    if progress:
-        from tqdm import tqdm
 
-        bar = tqdm(total=steps, desc="design", unit="step")
-    lr = learning_rate
-    restarted = False
-    while len(history) <= steps:
-        with jax.numpy_dtype_promotion("standard"):  # optax mixes an int32 count into float powers
-            step, state = adam.update(grad, state)
-        u_new, f_new, g_new, lr_used = _line_search(c, u, step, lr, history[-1], ref_pos, ref_ang, pw)
-        if u_new is None:
-            if restarted:
-                break
-            # stuck: the moments carried the poses against a visibility edge; start Adam afresh
-            state, lr, restarted = adam.init(u), learning_rate, True
-            continue
-        restarted = False
-        if bar is not None:
-            bar.update(1)
-            bar.set_postfix(objective=f"{f_new:.3f}")
-        u, f, grad, lr = u_new, f_new, g_new, min(lr_used * 1.2, learning_rate)
-        history.append(f)
-    if bar is not None:
-        bar.close()
+    def search(u, step, lr, f0):
+        u_new, f_new, g_new, lr_used = _line_search(c, u, step, lr, f0, ref_pos, ref_ang, pw)
+        return None if u_new is None else Accepted(u_new, f_new, g_new, lr_used)
+
+    d = adam_descent(
+        u,
+        float(f),
+        grad,
+        search,
+        steps,
+        learning_rate,
+        optax.scale_by_adam(b1=0.9, b2=0.999, eps=1e-12),
+        grow=1.2,
+        restart=True,
+        progress="design" if progress else None,
+        postfix=lambda v: {"objective": f"{v:.3f}"},
+    )
+    u, history = d.u, d.history
     after = dataclasses.replace(plan, views=c.views_of(u))
     before_pred = _prediction(c, plan.views)
     after_pred = _prediction(c, after.views)

@@ -47,6 +47,7 @@ from ..images.pipe import beam_pipe_point
 from ..measurement.measure import circle_sensitivity, triangulate_spot
 from ..support.persist import PersistentJit
 from ..support.safe import safe_normalize
+from .descent import Accepted, adam_descent
 from .design import MIN_SPOTS, Plan, calibration_covariance, design_problem, pad_views
 
 BODY_RADIUS_MM = 12.0  # the renderer's default sensor body (RenderOptions)
@@ -355,35 +356,31 @@ def optimise_lasers(
     history = [float(np.mean(current.diameter_std_mm**2 / current.diameters**2))]
     if feasible:
         f, grad = c.value_and_grad(u)
-        adam = optax.scale_by_adam()
-        state = adam.init(u)
-        bar = None
-        if progress:
-            from tqdm import tqdm
 
-            bar = tqdm(total=steps, desc="laser design", unit="step")
-        while len(history) <= steps:
-            with jax.numpy_dtype_promotion("standard"):  # optax mixes an int32 count into float powers
-                direction, state = adam.update(grad, state)
-            lr, moved = learning_rate, False
+        def search(u, direction, lr, f0):
             for _ in range(10):
                 u_new = u - lr * direction
                 f_new, g_new = c.value_and_grad(u_new)
-                if np.isfinite(float(f_new)) and float(f_new) < float(f):
+                if np.isfinite(float(f_new)) and float(f_new) < f0:
                     p_new = c.evaluate(u_new)
                     if p_new.feasible(mp, wall_needed):
-                        moved = True
-                        break
+                        return Accepted(u_new, f_new, g_new, lr, p_new)
                 lr *= 0.5
-            if not moved:
-                break
-            u, f, grad, current = u_new, f_new, g_new, p_new
-            history.append(float(f))
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix(value=f"{float(f):.3g}")
-        if bar is not None:
-            bar.close()
+            return None
+
+        d = adam_descent(
+            u,
+            f,
+            grad,
+            search,
+            steps,
+            learning_rate,
+            optax.scale_by_adam(),
+            progress="laser design" if progress else None,
+            postfix=lambda v: {"value": f"{v:.3g}"},
+        )
+        u, current = d.u, current if d.extra is None else d.extra
+        history = [history[0], *d.history[1:]]
     timings = {"compile_s": t_compile, "grid_s": t_grid, "total_s": time.perf_counter() - t0}
     return MeasureDesign(mp, mp.plan.rig, c.rig_at(u), before, current, history, feasible, timings)
 
