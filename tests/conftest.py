@@ -143,3 +143,98 @@ def compilations():
             logger.removeHandler(handler)
 
     return listen
+
+
+# --------------------------------------------------------------------------- written files against their schemas
+
+# a JSON file under the session's temporary folders (tmp_path, tmp_path_factory) -> (mtime_ns, size) when it was
+# last checked, so that each version of a file is read once however many tests run after it was written
+_checked: dict[str, tuple[int, int]] = {}
+
+
+@pytest.fixture(autouse=True)
+def _schema_basetemp(request, tmp_path_factory):
+    """Where this test's temporary folders lie (the session's base temp), for the schema check below."""
+    request.node._schema_basetemp = tmp_path_factory.getbasetemp()
+
+
+def _json_files(folder: str):
+    """The ``.json`` files under ``folder`` with their ``(mtime_ns, size)``."""
+    stack = [folder]
+    while stack:
+        try:
+            entries = list(os.scandir(stack.pop()))
+        except OSError:
+            continue
+        for e in entries:
+            if e.is_dir(follow_symlinks=False):
+                stack.append(e.path)
+            elif e.name.endswith(".json") and e.is_file(follow_symlinks=False):
+                try:
+                    st = e.stat()
+                except OSError:
+                    continue
+                yield e.path, (st.st_mtime_ns, st.st_size)
+
+
+def _read_back_rejects(doc: dict, path: str) -> bool:
+    """Whether the project's own reader refuses the document too: a test's hand-broken input
+    (a reader test), not a file the project wrote."""
+    from slcvjax.observations.formats import FormatError, calibration_from_json, observations_from_json
+
+    readers = {"slcv-observations/1": observations_from_json, "slcv-calibration/1": calibration_from_json}
+    if doc.get("format") == "slcv-setup/1":
+        from slcvjax.images.detect import read_setup
+
+        readers["slcv-setup/1"] = lambda _doc, _src: read_setup(path)
+    reader = readers.get(doc.get("format"))
+    if reader is None:
+        return False
+    try:
+        reader(doc, path)
+    except (FormatError, ValueError):
+        return True
+    return False
+
+
+def schema_problems(folder) -> list[str]:
+    """The JSON files under ``folder`` written or changed since they were last checked that carry the
+    ``format`` of a public format and do not match its schema (``slcvjax.observations.schemas``), one line each;
+    files that are not JSON, of another format, or that the project's reader refuses as well are passed over."""
+    import json
+
+    from slcvjax.observations import schemas
+
+    out = []
+    for path, key in _json_files(str(folder)):
+        if _checked.get(path) == key:
+            continue
+        _checked[path] = key
+        try:
+            with open(path, encoding="utf-8") as f:
+                text = f.read()
+            if '"format"' not in text:
+                continue
+            doc = json.loads(text)
+        except (OSError, ValueError):
+            continue
+        if not isinstance(doc, dict) or doc.get("format") not in schemas.FORMATS:
+            continue
+        found = schemas.errors(doc)
+        if found and not _read_back_rejects(doc, path):
+            where, msg = found[0]
+            out.append(f"{path}: {where}: {msg[:300]}" + (f" (and {len(found) - 1} more)" if len(found) > 1 else ""))
+    return out
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_call(item):
+    """After a test that passed, every JSON file of a public format written under the session's temporary folders
+    since the last test (by the test or its fixtures) must match its schema: a failure names the file and field."""
+    outcome = yield
+    base = getattr(item, "_schema_basetemp", None)
+    if outcome.excinfo is not None or base is None:
+        return
+    problems = schema_problems(base)
+    if problems:
+        outcome.force_exception(AssertionError("written files do not match their schemas:\n" + "\n".join(problems)))
