@@ -127,7 +127,7 @@ def _cone_mesh(mirror, n_az: int = 48, n_s: int = 8):
     return pts[..., 0], pts[..., 1], pts[..., 2]
 
 
-def plot_rig(rig, path, walls=(), truth=None, title: str | None = None) -> Path:
+def plot_rig(rig, path, walls=(), truth=None, title: str | None = None, omit=()) -> Path:
     """A 3D view of the sensor (the paper's Fig. 5): camera, cone mirror, laser lines and targets.
 
     Args:
@@ -137,6 +137,7 @@ def plot_rig(rig, path, walls=(), truth=None, title: str | None = None) -> Path:
             walls, say); each laser line is drawn up to the farthest wall it meets in front
             of its origin, or 300 mm without walls.
         truth: a second rig drawn dashed (the simulator's truth), for comparison.
+        omit: lasers not to draw (a calibration's undetermined lasers, held at a placeholder).
     """
     from .geometry.lasers import line_plane_intersection
 
@@ -175,6 +176,8 @@ def plot_rig(rig, path, walls=(), truth=None, title: str | None = None) -> Path:
 
     colors = plt.cm.tab10(np.arange(rig.lasers.n) % 10)
     for i in range(rig.lasers.n):
+        if i in omit:
+            continue
         a, b = reach(rig.lasers, i)
         ax.plot(*np.stack([a, b]).T, color=colors[i], lw=1.2, label=f"laser {i}" if rig.lasers.n <= 12 else None)
         ax.scatter(*a, s=10, color=colors[i])
