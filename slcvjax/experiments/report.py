@@ -289,6 +289,14 @@ def _gain(norms: np.ndarray) -> float:
     return min((g for g in (1, 2, 5, 10, 20, 50, 100, 200, 500, 1000) if g * med >= 15.0), default=1000.0)
 
 
+def _scale_bar(gain: float, length_px: float) -> float:
+    """The round residual (px: 1, 2 or 5 times a power of ten) drawn closest to ``length_px`` long at ``gain``."""
+    target = length_px / gain
+    e = np.floor(np.log10(target))
+    choices = [m * 10.0**k for k in (e - 1, e, e + 1) for m in (1, 2, 5)]
+    return float(min(choices, key=lambda c: abs(np.log(c / target))))
+
+
 def _view_figure(name, size, image, rim_model, pts, vec, kinds, outlier, rim_pixels, gain, title) -> str:
     """One view: the image (or a grey canvas), the observed points, their residuals at ``gain``
     and a scale arrow of 1 px of residual; a catadioptric view (``rim_model`` given) is cropped to
@@ -322,9 +330,14 @@ def _view_figure(name, size, image, rim_model, pts, vec, kinds, outlier, rim_pix
     if np.any(outlier):
         ax.plot(*pts[outlier].T, "o", ms=9, mfc="none", mec="darkorange", mew=1.2, ls="none")
     # the scale: an arrow of 1 px of residual
+    # the scale: an arrow of a round residual drawn about a tenth of the panel's width
+    bar = _scale_bar(gain, 0.1 * (x1 - x0))
     ax0, ay0 = x0 + 0.03 * (x1 - x0), y1 - 0.04 * (y1 - y0)
-    ax.annotate("", xy=(ax0 + gain, ay0), xytext=(ax0, ay0), arrowprops={"arrowstyle": "->", "color": "red", "lw": 1.2})
-    ax.text(ax0, ay0 - 0.02 * (y1 - y0), f"1 px residual (x{gain:g})", color="red", fontsize=7, va="bottom")
+    box = {"facecolor": "white", "alpha": 0.8, "edgecolor": "none", "pad": 1.5}
+    ax.annotate(
+        "", xy=(ax0 + bar * gain, ay0), xytext=(ax0, ay0), arrowprops={"arrowstyle": "->", "color": "red", "lw": 1.4}
+    )
+    ax.text(ax0, ay0 - 0.025 * (y1 - y0), f"{bar:g} px residual (x{gain:g})", color="red", fontsize=7, bbox=box)
     ax.set_xlim(x0, x1)
     ax.set_ylim(y1, y0)
     ax.set_title(title, fontsize=8)
@@ -557,10 +570,10 @@ def report_html(
     )
     body = (
         f'<p class="note">Each fitted observation\'s residual (model pixel less observed pixel) drawn as a red arrow '
-        f"<b>{gain:g} times its length</b> (the arrow at the bottom left is 1 px of residual), {over}. Dots: green "
-        "circles; spots: yellow crosses; chessboard corners: blue squares; the mirror rim's model image: magenta; "
-        "its detected edge pixels: cyan; the listed outliers: orange rings. Left-out observations are not drawn "
-        "(see the repairs).</p>"
+        f"<b>{gain:g} times its length</b> (the arrow at the bottom left: a residual of the length it states), "
+        f"{over}. Dots: green circles; spots: yellow crosses; chessboard corners: blue squares; the mirror rim's "
+        "model image: magenta; its detected edge pixels: cyan; the listed outliers: orange rings. Left-out "
+        "observations are not drawn (see the repairs).</p>"
         f'<div class="grid">{"".join(figs)}</div>'
     )
     sections.append(_section("residual-vectors", "Residuals on the image", body))
