@@ -153,6 +153,8 @@ _LAZY = {
     "plot_laser_design": "experiments.laser_design",
     "omni_observations": "experiments.omni",
     "plot_residuals": "experiments.omni",
+    "report_html": "experiments.report",
+    "write_report": "experiments.report",
 }
 
 
@@ -275,6 +277,7 @@ __all__ = [
     "render_pipe",
     "render_scene",
     "report",
+    "report_html",
     "reprojections",
     "run_sweep",
     "sensitivity",
@@ -294,5 +297,6 @@ __all__ = [
     "undistort",
     "write_calibration",
     "write_observations",
+    "write_report",
     "write_sweep",
 ]

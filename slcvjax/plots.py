@@ -127,7 +127,7 @@ def _cone_mesh(mirror, n_az: int = 48, n_s: int = 8):
     return pts[..., 0], pts[..., 1], pts[..., 2]
 
 
-def plot_rig(rig, path, walls=(), truth=None, title: str | None = None) -> Path:
+def plot_rig(rig, path, walls=(), truth=None, title: str | None = None, omit=()) -> Path:
     """A 3D view of the sensor (the paper's Fig. 5): camera, cone mirror, laser lines and targets.
 
     Args:
@@ -137,6 +137,7 @@ def plot_rig(rig, path, walls=(), truth=None, title: str | None = None) -> Path:
             walls, say); each laser line is drawn up to the farthest wall it meets in front
             of its origin, or 300 mm without walls.
         truth: a second rig drawn dashed (the simulator's truth), for comparison.
+        omit: lasers not to draw (a calibration's undetermined lasers, held at a placeholder).
     """
     from .geometry.lasers import line_plane_intersection
 
@@ -145,9 +146,14 @@ def plot_rig(rig, path, walls=(), truth=None, title: str | None = None) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     fig = plt.figure(figsize=(8, 7))
     ax = fig.add_subplot(projection="3d")
-    ax.plot_surface(*_cone_mesh(rig.mirror), color="silver", alpha=0.5, linewidth=0)
+    from .geometry.mirror import ConeMirror
+
+    if isinstance(rig.mirror, ConeMirror):  # a cone: its surface
+        ax.plot_surface(*_cone_mesh(rig.mirror), color="silver", alpha=0.5, linewidth=0)
+    else:  # another mirror of revolution: its rim
+        ax.plot(*np.asarray(rig.mirror.rim_points(np.linspace(0.0, 2 * np.pi, 73))).T, color="0.4", lw=1.0)
     ax.scatter([0], [0], [0], marker="s", s=40, color="k")
-    size = 0.6 * float(rig.mirror.height) + 10.0
+    size = 0.6 * float(rig.mirror.height if isinstance(rig.mirror, ConeMirror) else rig.mirror.radius) + 10.0
     for k, c in enumerate(("r", "g", "b")):  # the camera frame's axes
         ax.plot([0, size * (k == 0)], [0, size * (k == 1)], [0, size * (k == 2)], color=c, lw=1.5)
     ax.text(0, 0, -0.5 * size, "camera", fontsize=8)
@@ -175,6 +181,8 @@ def plot_rig(rig, path, walls=(), truth=None, title: str | None = None) -> Path:
 
     colors = plt.cm.tab10(np.arange(rig.lasers.n) % 10)
     for i in range(rig.lasers.n):
+        if i in omit:
+            continue
         a, b = reach(rig.lasers, i)
         ax.plot(*np.stack([a, b]).T, color=colors[i], lw=1.2, label=f"laser {i}" if rig.lasers.n <= 12 else None)
         ax.scatter(*a, s=10, color=colors[i])
@@ -193,7 +201,9 @@ def plot_rig(rig, path, walls=(), truth=None, title: str | None = None) -> Path:
     if rig.lasers.n <= 12:
         ax.legend(fontsize=7, loc="upper left")
     extra = " (dashed: truth)" if truth is not None else ""
-    ax.set_title(title or f"Camera, cone mirror and laser lines{extra}")
+    ax.set_title(
+        title or f"Camera, {'cone ' if isinstance(rig.mirror, ConeMirror) else ''}mirror and laser lines{extra}"
+    )
     fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return path

@@ -116,7 +116,31 @@ def build_parser() -> argparse.ArgumentParser:
         "corrected for the mirror's distortion of its image at a first calibration, then calibrated again)",
     )
     c.add_argument("--export-opencv", help="also write the camera as OpenCV FileStorage YAML")
+    c.add_argument(
+        "--report",
+        action="store_true",
+        help="also write each calibration's HTML report beside it (<out stem>_report.html; see slcvjax report)",
+    )
     c.set_defaults(func=_command("calibrate"))
+
+    r = _add(sub, "report", help="write a calibration's report: one self-contained HTML file of figures and tables")
+    r.add_argument(
+        "calibration", help="a slcv-calibration/1 file written by slcvjax calibrate (one that carries its problem)"
+    )
+    r.add_argument("--out", required=True, help="output HTML file")
+    r.add_argument(
+        "--images",
+        help="the image folder the observations were detected in (its setup.json names the files): the residuals "
+        "are drawn over the images",
+    )
+    r.add_argument(
+        "--range",
+        type=float,
+        default=None,
+        metavar="MM",
+        help="range of the projection uncertainty map, mm from the camera (default: the lasers' mean working range)",
+    )
+    r.set_defaults(func=_command("report"))
 
     k = _add(sub, "camera", help="calibrate a plain camera from chessboard images")
     k.add_argument("images", nargs="+")

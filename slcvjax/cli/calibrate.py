@@ -88,9 +88,16 @@ def run(args) -> int:
         targets = [out / f"{p.stem}.json" for p in inputs]
         if len({t.name for t in targets}) < len(targets):
             raise FormatError("inputs: two inputs share a file name; their outputs would collide")
-    for (_, cal), target in zip(results, targets, strict=True):
+    for (path, cal), target in zip(results, targets, strict=True):
         write_calibration(target, cal)
         log.info(f"wrote {target}")
+        if args.report:
+            from ..experiments.report import write_report
+            from .report import report_path
+
+            # an image folder input: the residuals drawn over its images
+            out_html = write_report(target, report_path(target), images=path if path.is_dir() else None)
+            log.info(f"wrote {out_html}")
     if args.export_opencv:
         export_opencv(args.export_opencv, results[0][1].rig.camera)
         log.info(f"wrote {args.export_opencv}")
