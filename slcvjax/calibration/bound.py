@@ -47,23 +47,37 @@ def laser_offset(lasers: Lasers, i: int, x_ref, delta4):
     return lasers.at_working_point(i, x_ref, delta4)[0] - x_ref
 
 
+def laser_variance(lasers: Lasers, i, x_ref, block) -> tuple[jax.Array, jax.Array]:
+    """Laser ``i``'s position variance (mm^2) at the working point ``x_ref`` (3,) and its
+    direction variance (rad^2), from its block of a covariance (its tangent columns, (4, 4):
+    point offset e1, e2, direction tilt e1, e2).  In JAX: the report's :func:`laser_std` and the
+    design's prediction (differentiated) both use it; ``i`` may be traced."""
+    j = jax.jacfwd(lambda d: laser_offset(lasers, i, x_ref, d))(jnp.zeros(block.shape[0]))
+    return jnp.trace(j @ block @ j.T), block[2, 2] + block[3, 3]
+
+
+_laser_variance = jax.jit(laser_variance)
+
+
 def laser_std(rig: Rig, cov_glob: np.ndarray, x_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per laser: position std (mm) of the line at ``x_ref`` and direction std (rad); NaN for a
-    laser whose covariance block is not positive (undetermined)."""
+    """Per laser: position std (mm) of the line at ``x_ref`` and direction std (rad)
+    (:func:`laser_variance`); NaN for a laser whose covariance block is not positive
+    (undetermined)."""
     n = rig.lasers.n
     pos, ang = np.zeros(n), np.zeros(n)
     cov_glob = np.asarray(cov_glob)
     for i in range(n):
         sl = rig.layout.elements[i]
         c = cov_glob[sl, sl]
-        zero = jnp.zeros(sl.stop - sl.start)
-        j = np.asarray(jax.jacfwd(lambda d, i=i: laser_offset(rig.lasers, i, jnp.asarray(x_ref[i]), d))(zero))
         # a block that is not positive: the data do not determine this laser (NaN, not 0)
         definite = bool(np.all(np.isfinite(c))) and (
             np.linalg.eigvalsh(0.5 * (c + c.T)).min() >= -1e-9 * max(np.abs(c).max(), 1e-300)
         )
-        pos[i] = std_of_variance(np.trace(j @ c @ j.T)) if definite else np.nan
-        ang[i] = std_of_variance(c[2, 2] + c[3, 3]) if definite else np.nan
+        if definite:
+            var_p, var_a = _laser_variance(rig.lasers, i, jnp.asarray(x_ref[i]), jnp.asarray(c))
+            pos[i], ang[i] = std_of_variance(float(var_p)), std_of_variance(float(var_a))
+        else:
+            pos[i] = ang[i] = np.nan
     return pos, ang
 
 

@@ -37,7 +37,7 @@ import numpy as np
 import optax
 from jaxtyping import Array, Bool
 
-from ..calibration.bound import laser_offset
+from ..calibration.bound import laser_variance
 from ..calibration.linearise import rows_at
 from ..calibration.params import N_LAS, Params, make_masks
 from ..calibration.schur import normal_equations, schur_inverse
@@ -253,9 +253,7 @@ def _predict(views, rig, T_bw, chess, pk, sigma, present):
 
     def laser(i):
         s = starts[i]  # a traced index: the block by a dynamic slice
-        c = jax.lax.dynamic_slice(cov, (s, s), (N_LAS, N_LAS))
-        j = jax.jacfwd(lambda d: laser_offset(rig.lasers, i, x_ref[i], d))(jnp.zeros(N_LAS))
-        return jnp.trace(j @ c @ j.T), c[2, 2] + c[3, 3]
+        return laser_variance(rig.lasers, i, x_ref[i], jax.lax.dynamic_slice(cov, (s, s), (N_LAS, N_LAS)))
 
     pos, ang = jax.vmap(laser)(jnp.arange(rig.lasers.n))
     # a laser with too few spots seen cannot be calibrated at all (its line needs spots on
