@@ -42,7 +42,7 @@ from ..support.persist import PersistentJit
 from .losses import LOSSES, robust_cost
 from .params import N_CAM, N_CM, N_LAS, Masks, Params, element_columns, pad_problem, unpad_params
 from .residuals import camera_mirror, chess_residual, dot_residual, rim_scale, rim_value, spot_residual
-from .schur import schur_solve
+from .schur import Normal, finish_normal, schur_solve
 
 N_G = N_CM + N_LAS  # the global part of an observation's local parameters (padded)
 DATA_FIELDS = ("dot_pixels", "spot_pixels", "rim_pixels", "chess_pixels", "dot_points", "chess_points")
@@ -180,18 +180,19 @@ class _Hessian(NamedTuple):
 
 
 def _assemble(bl: _Blocks, g: int, nb: int, masks: Masks) -> _Hessian:
-    """The Schur-form Hessian over the estimated parameters (frozen ones get a unit diagonal)."""
+    """The Schur-form Hessian over the estimated parameters: the observations' second-order blocks
+    scattered into sums, then finished as the solve's normal equations are
+    (:func:`slcvjax.calibration.schur.finish_normal`: frozen parameters, and those no row reaches,
+    get a unit diagonal)."""
     gm = jnp.concatenate([masks.glob, jnp.zeros(1)])[bl.gidx]  # (n, N_G)
     pm = jnp.concatenate([masks.blocks, jnp.zeros(1)])[bl.pidx]  # (n,)
     h = bl.h * jnp.concatenate([gm, jnp.broadcast_to(pm[:, None], (pm.shape[0], 6))], axis=1)[:, :, None]
     h = h * jnp.concatenate([gm, jnp.broadcast_to(pm[:, None], (pm.shape[0], 6))], axis=1)[:, None, :]
-    A = jnp.zeros((g + 1, g + 1)).at[bl.gidx[:, :, None], bl.gidx[:, None, :]].add(h[:, :N_G, :N_G])[:g, :g]
-    B = jnp.zeros((nb + 1, g + 1, 6)).at[bl.pidx[:, None], bl.gidx].add(h[:, :N_G, N_G:])[:nb, :g]
-    D = jnp.zeros((nb + 1, 6, 6)).at[bl.pidx].add(h[:, N_G:, N_G:])[:nb]
-    A = A + jnp.diag(jnp.where(jnp.diag(A) > 0.0, 1.0 - masks.glob, 1.0))
-    empty = jnp.trace(D, axis1=1, axis2=2) <= 0.0
-    D = D + jnp.where(empty | (masks.blocks <= 0.0), 1.0, 0.0)[:, None, None] * jnp.eye(6)
-    return _Hessian(A, B, D)
+    A = jnp.zeros((g + 1, g + 1)).at[bl.gidx[:, :, None], bl.gidx[:, None, :]].add(h[:, :N_G, :N_G])
+    B = jnp.zeros((nb + 1, g + 1, 6)).at[bl.pidx[:, None], bl.gidx].add(h[:, :N_G, N_G:])
+    D = jnp.zeros((nb + 1, 6, 6)).at[bl.pidx].add(h[:, N_G:, N_G:])
+    ne, _, _ = finish_normal(Normal(A, jnp.zeros(g + 1), B, D, jnp.zeros((nb + 1, 6))), masks.glob, masks.blocks)
+    return _Hessian(ne.A, ne.B, ne.D)
 
 
 def _schur_solve(hs: _Hessian, rg, rp):
