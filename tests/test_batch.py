@@ -10,7 +10,7 @@ import jax
 import numpy as np
 import pytest
 
-import slcvjax.calibration.calibrate as C
+import slcvjax.calibration.executors as C
 from slcvjax.calibration.calibrate import calibrate, calibrate_many
 from slcvjax.calibration.executors import resolve_batch
 from slcvjax.observations.simulate import make_scene, simulate
