@@ -2,9 +2,12 @@
 
 import argparse
 import importlib
+import signal
 import sys
+import threading
 
-from ..observations.formats import FormatError
+from ..observations import formats as _formats
+from ..observations.formats import FormatError, OutputError
 from ..observations.simulate import PAPER_HALF_WIDTH, PRESETS
 
 
@@ -232,10 +235,32 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _terminated(signum, frame):
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run a command; its errors are one line on stderr and exit status 2: a bad input
+    (:class:`FormatError`, ``ValueError``), an output that cannot be written or another
+    file-system error (``OSError``, :class:`slcvjax.observations.formats.OutputError`).  SIGTERM
+    and SIGINT stop it as ``KeyboardInterrupt`` (exit 130), so that an atomic write under way
+    deletes its temporary file; no output is ever left half written."""
     args = build_parser().parse_args(argv)
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _terminated) if main_thread else None
     try:
         return args.func(args)
     except (FormatError, ValueError) as e:
         print(f"slcvjax {args.command}: error: {e}", file=sys.stderr)
         return 2
+    except OSError as e:
+        text = str(e) if isinstance(e, OutputError) or e.filename is None else f"{e.filename}: {e.strerror or e}"
+        print(f"slcvjax {args.command}: error: {text}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"slcvjax {args.command}: interrupted; no output was left half written", file=sys.stderr)
+        return 130
+    finally:
+        _formats._CHECKED.clear()  # the folders this command checked (a vanished one is not made again)
+        if main_thread:
+            signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)

@@ -2,13 +2,15 @@
 
 import sys
 import time
+from pathlib import Path
 
-from ..observations.formats import write_observations
+from ..observations.formats import check_writable, write_observations
 
 
 def run(args) -> int:
     from ..images.detect import detect_folder
 
+    check_writable(args.out, (Path(args.folder) / "setup.json",))
     t0 = time.perf_counter()
     obs, rep = detect_folder(args.folder, progress=sys.stderr.isatty())
     for line in rep.lines():

@@ -114,19 +114,124 @@ def _check_format(ctx: _Ctx, doc: Any, expected: str):
         ctx.fail("format", f"expected {expected!r}, got {fmt!r}")
 
 
-def write_text_atomic(path: str | os.PathLike, text: str) -> None:
-    """Write a text file atomically (temporary file beside the target, then rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+class OutputError(OSError):
+    """An output that cannot be written: the message names the file and why (one line)."""
+
+
+def _why(e: OSError) -> str:
+    return e.strerror or str(e)
+
+
+def temp_name_pattern(path: str | os.PathLike) -> str:
+    """The glob of the temporary files an atomic write of ``path`` makes beside it: hidden,
+    named after the target and ending in ``.tmp`` (or ``.tmp<suffix>``).  A write that fails or
+    is interrupted (an exception, SIGINT, SIGTERM in the command line) deletes its own; only a
+    process killed outright (SIGKILL, a power cut) can leave one behind, never the target half
+    written."""
+    return f".{Path(path).name}.*.tmp*"
+
+
+def _cannot_write(path: Path, e: OSError) -> OutputError:
+    """The one-line error of an output that cannot be written, naming a file in the way."""
+    for parent in path.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                return OutputError(f"{path}: cannot write: {parent} is a file, not a directory")
+            break
+    return OutputError(f"{path}: cannot write: {_why(e)}")
+
+
+def _same_file(a: Path, b: Path) -> bool:
     try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
+        return a.exists() and b.exists() and a.samefile(b)
+    except OSError:
+        return False
+
+
+def check_writable(path: str | os.PathLike, inputs: tuple = ()) -> None:
+    """Raise :class:`OutputError` where ``path`` cannot be written (its folder cannot be made
+    or takes no file, it is a folder, or it is one of the ``inputs``): a command checks its
+    outputs before a long run."""
+    path = Path(path)
+    for inp in inputs:
+        if inp is not None and _same_file(path, Path(inp)):
+            raise OutputError(f"{path}: would overwrite the input {inp}; give another output")
+    if path.is_dir():
+        raise OutputError(f"{path}: cannot write: it is a directory")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        os.close(fd)
+        os.unlink(tmp)
+    except OSError as e:
+        raise _cannot_write(path, e) from None
+    _CHECKED.add(path.parent.absolute())
+
+
+# the folders :func:`check_writable` found or made: one that has vanished by the time of the
+# write is not made again (an unmounted drive's folder would be made on the disk below it)
+_CHECKED: set[Path] = set()
+
+
+def atomic_target(path: str | os.PathLike, suffix: str = "") -> tuple[Path, Path]:
+    """``(path, temporary)``: a fresh temporary file beside ``path`` (see
+    :func:`temp_name_pattern`) for a writer to fill and :func:`commit_target` to rename into
+    place; :class:`OutputError` where the folder cannot take it."""
+    path = Path(path)
+    if path.parent.absolute() in _CHECKED and not path.parent.is_dir():
+        raise OutputError(f"{path}: cannot write: its folder {path.parent} has vanished since the command started")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + suffix, dir=path.parent)
+        os.close(fd)
+    except OSError as e:
+        raise _cannot_write(path, e) from None
+    return path, Path(tmp)
+
+
+def _umask() -> int:
+    try:  # Linux: read without changing it (os.umask would, for every thread)
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def commit_target(path: Path, tmp: Path) -> None:
+    """Rename the filled temporary ``tmp`` onto ``path`` (atomic), with the mode an ordinary
+    write would give it (the old file's, else 0666 less the umask; the temporary is 0600);
+    :class:`OutputError` where it fails."""
+    try:
+        os.chmod(tmp, path.stat().st_mode & 0o7777 if path.is_file() else 0o666 & ~_umask())
         os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    except OSError as e:
+        tmp.unlink(missing_ok=True)
+        raise (
+            OutputError(f"{path}: cannot write: it is a directory") if path.is_dir() else _cannot_write(path, e)
+        ) from None
+
+
+def write_text_atomic(path: str | os.PathLike, text: str) -> None:
+    """Write a text file atomically: a temporary file beside the target (:func:`temp_name_pattern`),
+    flushed to disk, then renamed onto it, so the target is either absent, as it was, or whole.
+    Raises :class:`OutputError` (one line naming the file) where it cannot be written, leaving
+    no temporary file."""
+    path, tmp = atomic_target(path)
+    try:
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+    except BaseException as e:
+        tmp.unlink(missing_ok=True)
+        if isinstance(e, OSError):
+            raise _cannot_write(path, e) from None
         raise
+    commit_target(path, tmp)
 
 
 def write_json_atomic(path: str | os.PathLike, doc: Any) -> None:
