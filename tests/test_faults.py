@@ -1,6 +1,12 @@
 """Faults outside the data (issue 61, item 3): a damaged cache, two processes at once, an
 output that cannot be written, bad images, a calibration killed part way."""
 
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
 import warnings
 import zlib
 from pathlib import Path
@@ -12,6 +18,7 @@ import pytest
 from jax._src import compilation_cache as jax_cc
 
 from slcvjax.cli import main
+from slcvjax.observations.formats import temp_name_pattern
 from slcvjax.support import cache, persist
 
 # --------------------------------------------------------------------------- a damaged cache
@@ -206,3 +213,123 @@ def test_an_output_folder_that_vanishes_during_the_run_is_one_line_and_exit_2(tm
     line = _one_error_line(capsys.readouterr().err, "simulate", str(out / "observations.json"))
     assert "vanished" in line
     assert _listing(tmp_path) == ({"run"} if how == "removed" else {"run", "run/out"})
+
+
+# --------------------------------------------------------------------------- killed part way
+
+# a fresh process writes a calibration and is stopped by ``signal`` in the middle of the write:
+# after the temporary file is filled, before it is renamed onto the target
+KILLED_WRITE = """
+import os, signal, sys
+from slcvjax.observations import formats
+cal = formats.read_calibration(sys.argv[1])
+formats.os.fsync = lambda fd: os.kill(os.getpid(), getattr(signal, sys.argv[3]))
+formats.write_calibration(sys.argv[2], cal)
+"""
+
+
+def _env() -> dict:
+    return dict(os.environ)  # the tests' compilation cache (conftest) included
+
+
+def _temps(folder: Path, target: str) -> list[Path]:
+    return sorted(folder.glob(temp_name_pattern(folder / target)))
+
+
+@pytest.mark.parametrize("sig", ["SIGKILL", "SIGINT"])
+def test_a_write_stopped_in_the_middle_leaves_no_output(scene_dir, tmp_path, sig):
+    """The target is absent (or its old whole self); SIGKILL can leave only a temporary file
+    named as one, beside it; SIGINT (an exception) deletes its temporary."""
+    out = tmp_path / "out"
+    out.mkdir()
+    target = out / "cal.json"
+    for old in (None, b'{"an": "old whole file"}\n'):
+        if old is not None:
+            target.write_bytes(old)
+        run = subprocess.run(
+            [sys.executable, "-c", KILLED_WRITE, str(scene_dir / "truth.json"), str(target), sig],
+            env=_env(),
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert run.returncode != 0, run.stderr[-2000:]
+        assert (target.read_bytes() if target.exists() else None) == old
+        temps = _temps(out, "cal.json")
+        if sig == "SIGKILL":
+            assert len(temps) == 1 and temps[0].name.startswith(".cal.json.") and temps[0].name.endswith(".tmp")
+            assert json.loads(temps[0].read_text())["format"] == "slcv-calibration/1"  # filled, not renamed
+            temps[0].unlink()
+        assert _temps(out, "cal.json") == []
+        assert sorted(p.name for p in out.iterdir()) == ([] if old is None else ["cal.json"])
+
+
+def test_sigterm_during_a_write_leaves_no_output_and_exits_130(tmp_path, capsys, monkeypatch):
+    """``main`` turns SIGTERM into KeyboardInterrupt: the write under way deletes its temporary."""
+    import threading
+
+    from slcvjax.observations import formats
+
+    if threading.current_thread() is not threading.main_thread():
+        pytest.skip("signals reach the main thread only")
+    monkeypatch.setattr(formats.os, "fsync", lambda fd: os.kill(os.getpid(), signal.SIGTERM))
+    out = tmp_path / "sim"
+    argv = ["simulate", "--preset", "paper", "--lasers", "3", "--views", "2", "--out", str(out)]
+    assert main(argv) == 130
+    assert "interrupted" in capsys.readouterr().err
+    assert list(out.iterdir()) == []
+    assert signal.getsignal(signal.SIGTERM) is not None  # put back
+
+
+@pytest.mark.slow
+def test_a_calibration_killed_at_any_moment_leaves_no_half_written_output(scene_dir, tmp_path):
+    """`slcvjax calibrate` killed (SIGKILL, SIGTERM) at a few moments: from the start, during the
+    solve, as it reports, as it writes.  The output is absent or a whole calibration equal to an
+    uninterrupted run's; only SIGKILL may leave a temporary file, named as one."""
+    from slcvjax.observations.formats import read_calibration
+
+    obs = str(scene_dir / "observations.json")
+    cmd = [sys.executable, "-m", "slcvjax.cli", "calibrate", obs, "--out"]
+    whole = tmp_path / "whole" / "cal.json"
+    # once to compile (where the tests' cache lacks it), once to time a run as the killed ones go
+    subprocess.run(cmd + [str(whole)], env=_env(), capture_output=True, timeout=600, check=True)
+    t0 = time.perf_counter()
+    subprocess.run(cmd + [str(whole)], env=_env(), capture_output=True, timeout=600, check=True)
+    seconds = time.perf_counter() - t0
+    reference = json.loads(whole.read_text())
+
+    moments = [("SIGKILL", 0.15 * seconds), ("SIGTERM", 0.3 * seconds), ("SIGKILL", 0.6 * seconds)]
+    moments += [("SIGKILL", 0.9 * seconds), ("SIGTERM", 0.8 * seconds)]
+    moments += [("SIGKILL", "report"), ("SIGTERM", "report")]  # as it prints its report: just before the write
+    outcomes = []
+    for k, (sig, when) in enumerate(moments):
+        out = tmp_path / f"run{k}"
+        target = out / "cal.json"
+        proc = subprocess.Popen(
+            cmd + [str(target)], env=_env(), stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
+        )
+        if when == "report":
+            for line in proc.stdout:
+                if line.startswith("=="):  # the report's first line: the solve has finished
+                    break
+        else:
+            time.sleep(when)
+        proc.send_signal(getattr(signal, sig))
+        proc.communicate(timeout=600)
+        if target.exists():
+            doc = json.loads(target.read_text())  # whole JSON
+            read_calibration(target)  # a valid calibration
+            assert doc["lasers"] == reference["lasers"] and doc["mirror"] == reference["mirror"]
+        temps = _temps(out, "cal.json") if out.exists() else []
+        if sig == "SIGTERM":
+            assert temps == [], (k, temps)
+        else:
+            assert all(t.name.startswith(".cal.json.") and t.name.endswith(".tmp") for t in temps)
+        left = {p.name for p in out.iterdir()} - {t.name for t in temps} if out.exists() else set()
+        assert left <= {"cal.json"}, left
+        outcomes.append((sig, when, proc.returncode, target.exists()))
+    # the early ones stopped it before it wrote (else the test did not test them); SIGTERM stops it
+    # as an interrupt (130) once main runs, or as the signal's default while Python still imports
+    assert not outcomes[0][3] and not outcomes[1][3], outcomes
+    assert all(rc in (130, -signal.SIGTERM, 0) for sig, _, rc, _ in outcomes if sig == "SIGTERM"), outcomes
+    assert all(rc in (-signal.SIGKILL, 0) for sig, _, rc, _ in outcomes if sig == "SIGKILL"), outcomes
