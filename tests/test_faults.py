@@ -333,3 +333,52 @@ def test_a_calibration_killed_at_any_moment_leaves_no_half_written_output(scene_
     assert not outcomes[0][3] and not outcomes[1][3], outcomes
     assert all(rc in (130, -signal.SIGTERM, 0) for sig, _, rc, _ in outcomes if sig == "SIGTERM"), outcomes
     assert all(rc in (-signal.SIGKILL, 0) for sig, _, rc, _ in outcomes if sig == "SIGKILL"), outcomes
+
+
+# --------------------------------------------------------------------------- two processes at once
+
+
+@pytest.mark.slow
+def test_two_calibrations_at_once_with_one_fresh_cache_agree(scene_dir, tmp_path):
+    """Two `slcvjax calibrate` of one scene started together on one empty cache folder: both
+    compile and write its entries at once; both succeed, agree to round-off and are near the
+    truth; a third run then loads their entries without a warning and agrees too."""
+    from slcvjax.observations.formats import read_calibration
+
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("SLCVJAX_", "JAX_COMPILATION"))}
+    env["SLCVJAX_CACHE_DIR"] = str(tmp_path / "cache")
+    cmd = [sys.executable, "-m", "slcvjax.cli", "calibrate", str(scene_dir / "observations.json"), "--out"]
+
+    def start(k):
+        return subprocess.Popen(cmd + [str(tmp_path / f"cal{k}.json")], env=env, stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)  # fmt: skip
+
+    procs = [start(0), start(1)]
+    outs = [p.communicate(timeout=900) for p in procs]
+    for p, (_, err) in zip(procs, outs, strict=True):
+        assert p.returncode == 0, err[-3000:]
+        assert "arning" not in err and "rror" not in err, err[-3000:]
+    third = subprocess.run(cmd + [str(tmp_path / "cal2.json")], env=env, capture_output=True, text=True, timeout=900)
+    assert third.returncode == 0 and "arning" not in third.stderr, third.stderr[-3000:]
+    assert any((tmp_path / "cache").glob("*-cache")) and any((tmp_path / "cache" / "traces").glob("*.jaxexport"))
+
+    cals = [read_calibration(tmp_path / f"cal{k}.json") for k in range(3)]
+    truth = read_calibration(scene_dir / "truth.json")
+    for cal in cals[1:]:
+        for a, b in [
+            (cal.rig.camera.K, cals[0].rig.camera.K),
+            (cal.rig.camera.dist, cals[0].rig.camera.dist),
+            (cal.rig.mirror.apex, cals[0].rig.mirror.apex),
+            (cal.rig.mirror.axis, cals[0].rig.mirror.axis),
+            (cal.rig.lasers.points, cals[0].rig.lasers.points),
+            (cal.rig.lasers.directions, cals[0].rig.lasers.directions),
+        ]:
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-9, atol=1e-9)
+    # near the truth, by the calibration's own standard deviations (not a copy of a wrong answer)
+    doc = json.loads((tmp_path / "cal0.json").read_text())
+    std = doc["uncertainty"]
+    apex_err = np.abs(np.asarray(cals[0].rig.mirror.apex) - np.asarray(truth.rig.mirror.apex))
+    assert np.all(apex_err < 5 * np.asarray(std["mirror_std"]["apex_mm"]) + 1e-6), apex_err
+    fx_err = abs(float(cals[0].rig.camera.fx) - float(truth.rig.camera.fx))
+    assert fx_err < 5 * std["camera_std"]["fx"], fx_err
+    assert 0.2 < doc["residuals"]["sigma_px"] < 0.4  # the simulated noise is 0.3 px
