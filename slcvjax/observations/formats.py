@@ -32,6 +32,10 @@ class FormatError(ValueError):
     """Bad input file: the message names the file, the field and the index."""
 
 
+MAX_FLOAT = 1.7976931348623157e308  # the largest float64: an integer past it has no float
+MAX_INT = 2**31 - 1  # the largest integer (a size, a count, an index) a file may give
+
+
 # --------------------------------------------------------------------------- validation helpers
 
 
@@ -59,6 +63,8 @@ class _Ctx:
     def number(self, val: Any, where: str) -> float:
         if isinstance(val, bool) or not isinstance(val, (int, float)):
             self.fail(where, f"expected a number, got {json.dumps(val)[:40]}")
+        if isinstance(val, int) and abs(val) > MAX_FLOAT:  # an integer beyond float64: no float
+            self.fail(where, f"number out of range ({len(str(abs(val)))} digits)")
         if not math.isfinite(val):
             self.fail(where, f"non-finite number {val}")
         return float(val)
@@ -72,10 +78,13 @@ class _Ctx:
     def integer(self, val: Any, where: str, lo: int | None = None, hi: int | None = None) -> int:
         if isinstance(val, bool) or not isinstance(val, int):
             self.fail(where, f"expected an integer, got {json.dumps(val)[:40]}")
+        shown = str(val) if abs(val) < 10**20 else f"an integer of {len(str(abs(val)))} digits"
         if lo is not None and val < lo:
-            self.fail(where, f"{val} is out of range (minimum {lo})")
+            self.fail(where, f"{shown} is out of range (minimum {lo})")
         if hi is not None and val >= hi:
-            self.fail(where, f"{val} is out of range [0, {hi})")
+            self.fail(where, f"{shown} is out of range [0, {hi})")
+        if abs(val) > MAX_INT:  # a count or size past int32: no array holds it
+            self.fail(where, f"{shown} is out of range (at most {MAX_INT})")
         return val
 
     def vector(self, val: Any, n: int, where: str) -> np.ndarray:
