@@ -455,6 +455,13 @@ def read_observations(path: str | os.PathLike) -> Observations:
             rim[j] = ctx.vector(p, 2, f"{where}.rim[{j}]")
         views.append(ViewObs(name, per_board, spots, rim))
 
+    # fields kept in ``extra`` that a calibration reads: checked here, kept as they are
+    for i, b in enumerate(ctx.list_of(doc, "rigid_boards", "", optional=True)):
+        board_points(b, f"rigid_boards[{i}]")
+    det = ctx.get(doc, "detection", "", dict, optional=True)
+    if det is not None:
+        _check_detection(ctx, det, boards, len(views))
+
     known = {
         "format",
         "units",
@@ -468,6 +475,46 @@ def read_observations(path: str | os.PathLike) -> Observations:
     }
     extra = {k: v for k, v in doc.items() if k not in known}
     return Observations((w, h), radius, height, n_lasers, boards, cal_views, views, extra, shape, projection)
+
+
+def _check_detection(ctx: _Ctx, det: dict, boards: dict[str, np.ndarray], n_views: int) -> None:
+    """The ``detection`` record of detected observations, as far as a calibration reads it
+    (:mod:`slcvjax.images.centroids`): ``dot_radius_mm`` (per board, a positive number or null),
+    ``spot_sigma_mm`` (positive or null) and ``ambiguous_boards`` (per target left out, its
+    view, board and two or more candidate placements: pixels and the board points' indices)."""
+
+    def known_board(name: Any, where: str) -> int:
+        if not isinstance(name, str) or name not in boards:
+            ctx.fail(where, f"unknown board {json.dumps(name)[:40]} (known: {', '.join(sorted(boards)) or 'none'})")
+        return len(boards[name])
+
+    radii = ctx.get(det, "dot_radius_mm", "detection", dict, optional=True) or {}
+    for b, r in radii.items():
+        known_board(b, f"detection.dot_radius_mm.{b}")
+        if r is not None:
+            ctx.positive(r, f"detection.dot_radius_mm.{b}")
+    sigma = ctx.get(det, "spot_sigma_mm", "detection", optional=True)
+    if sigma is not None:
+        ctx.positive(sigma, "detection.spot_sigma_mm")
+    for i, e in enumerate(ctx.list_of(det, "ambiguous_boards", "detection", optional=True)):
+        where = f"detection.ambiguous_boards[{i}]"
+        ctx.integer(ctx.get(e, "view", where), f"{where}.view", lo=0, hi=n_views)
+        n = known_board(ctx.get(e, "board", where), f"{where}.board")
+        cands = ctx.list_of(e, "candidates", where)
+        if len(cands) < 2:
+            ctx.fail(f"{where}.candidates", f"an ambiguous target has two or more placements, got {len(cands)}")
+        for j, c in enumerate(cands):
+            cw = f"{where}.candidates[{j}]"
+            idx = [
+                ctx.integer(k, f"{cw}.indices[{m}]", lo=0, hi=n) for m, k in enumerate(ctx.list_of(c, "indices", cw))
+            ]
+            if len(set(idx)) < len(idx):
+                ctx.fail(f"{cw}.indices", "a board point is listed twice")
+            pixels = ctx.list_of(c, "pixels", cw)
+            if len(pixels) != len(idx):
+                ctx.fail(f"{cw}.pixels", f"{len(pixels)} pixels for {len(idx)} indices")
+            for m, px in enumerate(pixels):
+                ctx.vector(px, 2, f"{cw}.pixels[{m}]")
 
 
 def _px_list(px: np.ndarray, seen: np.ndarray) -> list:
