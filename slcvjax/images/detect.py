@@ -177,8 +177,8 @@ def read_setup(path: str | Path) -> Setup:
             ctx.fail("spot_sigma_mm", f"must be positive, got {json.dumps(spot_sigma)}")
     rigid = ctx.get(doc, "rigid_boards", "", list, optional=True) or []
     for i, b in enumerate(rigid):
-        if b not in boards:
-            ctx.fail(f"rigid_boards[{i}]", f"unknown board {json.dumps(b)} (known: {', '.join(sorted(boards))})")
+        if not isinstance(b, str) or b not in boards:
+            ctx.fail(f"rigid_boards[{i}]", f"unknown board {json.dumps(b)[:40]} (known: {', '.join(sorted(boards))})")
     known = {"format", "image_size", "mirror_shape", "n_lasers", "laser_azimuth_deg", "boards", "views"}
     extra = {k: v for k, v in doc.items() if k not in known | {"chessboard_views", "spot_sigma_mm", "rigid_boards"}}
     return Setup((w, h), radius, height, n_lasers, boards, views, chess, laser_az, extra, spot_sigma, list(rigid))
