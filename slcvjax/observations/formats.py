@@ -590,10 +590,11 @@ def _read_pose(ctx: _Ctx, val: Any, where: str) -> Pose:
 
 
 def _unit(ctx: _Ctx, v: np.ndarray, where: str) -> np.ndarray:
-    n = np.linalg.norm(v)
-    if n < 1e-12:
+    m = float(np.max(np.abs(v)))  # scaled first: the norm of [1e308, 1e308, 0] is not inf
+    if m < 1e-12 or m * np.linalg.norm(v / m) < 1e-12:
         ctx.fail(where, "zero vector")
-    return v / n
+    u = v / m
+    return u / np.linalg.norm(u)
 
 
 UNDETERMINED_LASER = "undetermined: the data do not fix this laser's line (see uncertainty.lasers)"
