@@ -115,6 +115,8 @@ def _load_json(path: str | os.PathLike) -> tuple[_Ctx, Any]:
         return ctx, json.loads(text)
     except json.JSONDecodeError as e:
         ctx.fail("(file)", f"not valid JSON ({e.msg} at line {e.lineno} column {e.colno}; truncated?)")
+    except RecursionError:
+        ctx.fail("(file)", "not a file of this format (JSON nested too deeply to read)")
 
 
 def _check_format(ctx: _Ctx, doc: Any, expected: str):
