@@ -374,13 +374,12 @@ def measurement_inputs(path, cal) -> tuple[float | None, np.ndarray | None]:
         ("residuals.sigma_px", res.get("sigma_px")),
         ("residuals.rms_px", res.get("rms_px")),
     ):
-        if val is not None:
-            sigma = ctx.number(val, where)
-            if sigma < 0:
-                ctx.fail(where, f"expected a non-negative number, got {sigma:g}")
-            if where.endswith("rms_px"):  # the 2D RMS: per axis
-                sigma /= np.sqrt(2.0)
-            break
+        if val is not None:  # each one given is checked, the first one is used
+            x = ctx.number(val, where)
+            if x < 0:
+                ctx.fail(where, f"expected a non-negative number, got {x:g}")
+            if sigma is None:
+                sigma = x / np.sqrt(2.0) if where.endswith("rms_px") else x  # the 2D RMS: per axis
     unc = ctx.get(cal.extra, "uncertainty", "", dict, optional=True) or {}
     covariance = ctx.get(unc, "covariance", "uncertainty", dict, optional=True) or {}
     mat = ctx.get(covariance, "matrix", "uncertainty.covariance", list, optional=True)
