@@ -241,9 +241,10 @@ def _nodes(doc, path=()):
 
 @st.composite
 def _path(draw, doc):
-    """A node's path: a walk from the top that goes down a random child three times in four."""
+    """A node's path: a walk from the top (one in 20 the document itself) that goes down a random
+    child three times in four."""
     path, node = [], doc
-    while isinstance(node, (dict, list)) and node and draw(st.integers(0, 3)) > 0:
+    while isinstance(node, (dict, list)) and node and draw(st.integers(0, 19 if not path else 3)) > 0:
         key = draw(st.sampled_from(list(node))) if isinstance(node, dict) else draw(st.integers(0, len(node) - 1))
         path.append(key)
         node = node[key]
@@ -298,7 +299,7 @@ def mutated_text(draw, docs):
     """The file's text: a mutated document, sometimes then broken as bytes."""
     text = json.dumps(draw(mutated_doc(docs)))  # Python writes NaN and Infinity as JSON's extensions
     data = text.encode()
-    how = draw(st.sampled_from(["as is"] * 6 + ["truncate", "byte", "bom", "latin"]))
+    how = draw(st.sampled_from(["as is"] * 16 + ["truncate", "byte", "bom", "latin"]))
     if how == "truncate":
         data = data[: draw(st.integers(0, len(data)))]
     elif how == "byte" and data:
