@@ -382,3 +382,107 @@ def test_two_calibrations_at_once_with_one_fresh_cache_agree(scene_dir, tmp_path
     fx_err = abs(float(cals[0].rig.camera.fx) - float(truth.rig.camera.fx))
     assert fx_err < 5 * std["camera_std"]["fx"], fx_err
     assert 0.2 < doc["residuals"]["sigma_px"] < 0.4  # the simulated noise is 0.3 px
+
+
+# --------------------------------------------------------------------------- bad images
+
+
+@pytest.fixture(scope="module")
+def image_folder(tmp_path_factory):
+    """A small rendered scene: two catadioptric views, one direct chessboard view, setup.json."""
+    import dataclasses
+
+    from slcvjax.images.render import RenderOptions, render_scene
+    from slcvjax.observations.simulate import make_scene
+
+    scene = make_scene("paper", n_lasers=3, n_views=2)
+    scene = dataclasses.replace(scene, chess_poses=scene.chess_poses[:1])
+    folder = tmp_path_factory.mktemp("images") / "images"
+    render_scene(scene, folder, RenderOptions(noise=0.0))
+    return folder
+
+
+def _bad_images(h: int, w: int, good: bytes) -> dict:
+    """name: an image array (h, w, 3) or the file's bytes."""
+    import cv2
+
+    rng = np.random.default_rng(0)
+    disc = np.zeros((h, w, 3), np.uint8)
+    cv2.circle(disc, (w // 2, h // 2), 150, (255, 255, 255), -1)
+    half = np.zeros((h, w, 3), np.uint8)
+    half[:, w // 2 :] = 255
+    return {
+        "all black": np.zeros((h, w, 3), np.uint8),
+        "all white": np.full((h, w, 3), 255, np.uint8),
+        "wrong size": np.full((h // 2, w // 2, 3), 128, np.uint8),
+        "transposed": np.full((w, h, 3), 128, np.uint8),
+        "truncated": good[: len(good) // 3],
+        "truncated header": good[:30],
+        "empty file": b"",
+        "not an image": b"a text file\n",
+        "noise": rng.integers(0, 256, (h, w, 3)).astype(np.uint8),
+        "nearly white": (255 - rng.integers(0, 30, (h, w, 3))).astype(np.uint8),
+        "gradient": np.tile(np.linspace(0, 255, w).astype(np.uint8)[None, :, None], (h, 1, 3)),
+        "a plain disc": disc,
+        "half white": half,
+        "stripes": np.tile(((np.arange(w) // 2) % 2 * 255).astype(np.uint8)[None, :, None], (h, 1, 3)),
+    }
+
+
+NAMED = {  # what the one line says of an image that cannot be detected in at all
+    "all black": "blank image",
+    "all white": "blank image",
+    "wrong size": "size 320x240, setup.json says 640x480",
+    "transposed": "size 480x640, setup.json says 640x480",
+    "truncated": "not a readable image",
+    "truncated header": "not a readable image",
+    "empty file": "not a readable image",
+    "not an image": "not a readable image",
+}
+
+
+@pytest.mark.parametrize("image", ["view00.png", "chess00.png"])
+def test_a_bad_image_gives_a_named_error_or_a_not_found_entry(image_folder, tmp_path, capsys, image):
+    """`slcvjax detect` on a folder with one bad image: a one-line error naming it (exit 2, no
+    output), or the image's "not found" entries in the report and the file, and nothing found in
+    it (no board, spot or corner made up from noise); never a traceback."""
+    import shutil
+
+    import cv2
+
+    from slcvjax.observations.formats import read_observations
+
+    good = (image_folder / image).read_bytes()
+    stem = Path(image).stem
+    for case, bad in _bad_images(480, 640, good).items():
+        folder = tmp_path / case.replace(" ", "_")
+        shutil.copytree(image_folder, folder)
+        if isinstance(bad, bytes):
+            (folder / image).write_bytes(bad)
+        else:
+            assert cv2.imwrite(str(folder / image), bad)
+        out = tmp_path / f"{folder.name}.json"
+        capsys.readouterr()
+        rc = main(["detect", str(folder), "--out", str(out)])
+        got = capsys.readouterr()
+        assert "Traceback" not in got.err and "ERROR" not in got.err, (case, got.err)
+        if case in NAMED:
+            assert rc == 2, case
+            line = _one_error_line(got.err, "detect", str(folder / image))
+            assert NAMED[case] in line, (case, line)
+            assert not out.exists()
+            continue
+        assert rc == 0, (case, got.err)
+        obs = read_observations(out)
+        problems = obs.extra["detection"]["problems"][stem]
+        report = next(ln for ln in got.out.splitlines() if ln.startswith(f"{stem}:"))
+        if image.startswith("view"):
+            view = next(v for v in obs.views if v.name == stem)
+            assert not any(seen.any() for _, seen in view.boards.values()) and not view.spots, case
+            expected = ["no mirror found"] if "no mirror found" in problems else [f"wall{j}: " for j in range(4)]
+            assert all(any(p.startswith(e) for p in problems) for e in expected), (case, problems)
+            assert any(p.startswith("no spot for laser 0, 1, 2") for p in problems) or problems == ["no mirror found"]
+        else:
+            assert stem not in [v.name for v in obs.calibration_views], case
+            assert problems == ["no 9x6 chessboard found"], (case, problems)
+        assert all(p in report for p in problems), (case, report)
