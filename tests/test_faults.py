@@ -217,7 +217,7 @@ def test_an_output_folder_that_vanishes_during_the_run_is_one_line_and_exit_2(tm
 
 # --------------------------------------------------------------------------- killed part way
 
-# a fresh process writes a calibration and is stopped by ``signal`` in the middle of the write:
+# a fresh process writes a calibration and is stopped by a signal in the middle of the write:
 # after the temporary file is filled, before it is renamed onto the target
 KILLED_WRITE = """
 import os, signal, sys
@@ -236,10 +236,9 @@ def _temps(folder: Path, target: str) -> list[Path]:
     return sorted(folder.glob(temp_name_pattern(folder / target)))
 
 
-@pytest.mark.parametrize("sig", ["SIGKILL", "SIGINT"])
-def test_a_write_stopped_in_the_middle_leaves_no_output(scene_dir, tmp_path, sig):
-    """The target is absent (or its old whole self); SIGKILL can leave only a temporary file
-    named as one, beside it; SIGINT (an exception) deletes its temporary."""
+def test_a_write_killed_in_the_middle_leaves_no_output(scene_dir, tmp_path):
+    """SIGKILL between filling the temporary file and renaming it: the target is absent (or its
+    old whole self), and the one file left is the temporary, named as one, beside it."""
     out = tmp_path / "out"
     out.mkdir()
     target = out / "cal.json"
@@ -247,21 +246,40 @@ def test_a_write_stopped_in_the_middle_leaves_no_output(scene_dir, tmp_path, sig
         if old is not None:
             target.write_bytes(old)
         run = subprocess.run(
-            [sys.executable, "-c", KILLED_WRITE, str(scene_dir / "truth.json"), str(target), sig],
+            [sys.executable, "-c", KILLED_WRITE, str(scene_dir / "truth.json"), str(target), "SIGKILL"],
             env=_env(),
             capture_output=True,
             text=True,
             timeout=120,
         )
-        assert run.returncode != 0, run.stderr[-2000:]
+        assert run.returncode == -signal.SIGKILL, run.stderr[-2000:]
         assert (target.read_bytes() if target.exists() else None) == old
-        temps = _temps(out, "cal.json")
-        if sig == "SIGKILL":
-            assert len(temps) == 1 and temps[0].name.startswith(".cal.json.") and temps[0].name.endswith(".tmp")
-            assert json.loads(temps[0].read_text())["format"] == "slcv-calibration/1"  # filled, not renamed
-            temps[0].unlink()
-        assert _temps(out, "cal.json") == []
+        (temp,) = _temps(out, "cal.json")
+        assert temp.name.startswith(".cal.json.") and temp.name.endswith(".tmp")
+        assert json.loads(temp.read_text())["format"] == "slcv-calibration/1"  # filled, not renamed
+        temp.unlink()
         assert sorted(p.name for p in out.iterdir()) == ([] if old is None else ["cal.json"])
+
+
+def test_a_write_interrupted_in_the_middle_leaves_nothing(scene_dir, tmp_path, monkeypatch):
+    """KeyboardInterrupt (SIGINT) between filling the temporary file and renaming it: the write
+    deletes its temporary; the target is absent or its old whole self."""
+    from slcvjax.observations import formats
+
+    cal = formats.read_calibration(scene_dir / "truth.json")
+
+    def interrupt(fd):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(formats.os, "fsync", interrupt)
+    target = tmp_path / "cal.json"
+    with pytest.raises(KeyboardInterrupt):
+        formats.write_calibration(target, cal)
+    assert list(tmp_path.iterdir()) == []
+    target.write_text("old\n")
+    with pytest.raises(KeyboardInterrupt):
+        formats.write_calibration(target, cal)
+    assert [p.name for p in tmp_path.iterdir()] == ["cal.json"] and target.read_text() == "old\n"
 
 
 def test_sigterm_during_a_write_leaves_no_output_and_exits_130(tmp_path, capsys, monkeypatch):
