@@ -61,7 +61,15 @@ def _observations_docs(obs) -> list[dict]:
     conic = copy.deepcopy(doc)
     conic["mirror_shape"] = {"kind": "hyperboloid", "vertex_radius": 20.0}  # a conic, partly given
     conic["camera_projection"] = "auto"
-    return [doc, conic]
+    asphere = copy.deepcopy(doc)  # every dimension given, the coefficients a list
+    asphere["mirror_shape"] = {
+        "kind": "asphere",
+        "vertex_radius": 20.0,
+        "conic_constant": -1.5,
+        "coefficients": [1e-6, -1e-9],
+        "radius": 15.0,
+    }
+    return [doc, conic, asphere]
 
 
 def _calibration_docs(truth) -> list[dict]:
@@ -73,7 +81,16 @@ def _calibration_docs(truth) -> list[dict]:
     undetermined["lasers"][1] = {"point": None, "direction": None, "status": "undetermined"}
     camera_only = {"format": doc["format"], "camera": copy.deepcopy(doc["camera"])}
     camera_only["camera"].update(projection="telecentric", unit_mm=0.05)
-    return [doc, undetermined, camera_only]
+    conic = copy.deepcopy(doc)  # a hyperboloid mirror in place of the cone
+    conic["mirror"] = {
+        "kind": "hyperboloid",
+        "vertex_radius": 20.0,
+        "conic_constant": -2.0,
+        "radius": 15.0,
+        "apex": doc["mirror"]["apex"],
+        "axis": doc["mirror"]["axis"],
+    }
+    return [doc, undetermined, camera_only, conic]
 
 
 @pytest.fixture(scope="module")
