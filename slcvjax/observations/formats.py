@@ -356,7 +356,10 @@ def read_shape(ctx: "_Ctx", shape: Any, where: str, partial: bool = False) -> tu
         ctx.fail(f"{where}.kind", f"unknown mirror kind {kind!r} (known: {known})")
     if kind == "cone":
         radius = ctx.positive(ctx.get(shape, "radius", where), f"{where}.radius")
-        return radius, ctx.positive(ctx.get(shape, "height", where), f"{where}.height"), None
+        height = ctx.positive(ctx.get(shape, "height", where), f"{where}.height")
+        if not math.isfinite(radius / height):  # the slope r / h every ray meets
+            ctx.fail(f"{where}.height", f"the slope radius / height is not finite ({radius:g} / {height:g})")
+        return radius, height, None
     out: dict = {"kind": kind}
     keys = shape_keys(kind)
     for key in keys:
@@ -377,9 +380,14 @@ def read_shape(ctx: "_Ctx", shape: Any, where: str, partial: bool = False) -> tu
         return out.get("radius", 0.0), 0.0, out
     try:
         mirror = mirror_of_shape(out, [0.0, 0.0, 1.0], [0.0, 0.0, 1.0])
+        sag = float(mirror.height)
     except ValueError as e:
         ctx.fail(where, str(e))
-    return out["radius"], float(mirror.height), out
+    except ArithmeticError as e:  # a dimension too large for float64 overflows
+        ctx.fail(where, f"dimensions out of range ({e})")
+    if not math.isfinite(sag):
+        ctx.fail(where, f"dimensions out of range (the rim's sag is {sag})")
+    return out["radius"], sag, out
 
 
 def read_sensor_fields(ctx: _Ctx, doc: Any) -> tuple[tuple[int, int], float, float, int, dict | None]:
