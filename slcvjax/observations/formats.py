@@ -426,6 +426,7 @@ def read_observations(path: str | os.PathLike) -> Observations:
         bad = np.flatnonzero(np.abs(arr[:, 2]) > 1e-9)
         if bad.size:
             ctx.fail(f"{where}.points[{bad[0]}][2]", f"board points must have z = 0, got {arr[bad[0], 2]:g}")
+        arr[:, 2] = 0.0  # within 1e-9 of it: the board's plane, exactly
         boards[name] = arr
 
     def board_points(name: Any, where: str) -> np.ndarray:
