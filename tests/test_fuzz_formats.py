@@ -400,6 +400,10 @@ FOUND = [
     ("observations", 0, _at(["rigid_boards", 1], [0]), "rigid_boards[1]"),
     ("observations", 0, _at(["rigid_boards", 0], "ceiling"), "rigid_boards[0]"),
     ("setup", 0, _at(["rigid_boards", 0], ["wall0"]), "rigid_boards[0]"),
+    ("observations", 2, _at(["mirror_shape", "radius"], 2.68e155), "mirror_shape"),  # an asphere's
+    ("observations", 0, _at(["mirror_shape", "radius"], 1e308), None),  # a wide cone: reads
+    ("observations", 0, _at(["mirror_shape", "height"], 1e-310), "mirror_shape.height"),  # slope 2e311
+    ("observations", 0, _at(["boards", "wall0", "points", 0, 2], 1e-300), None),  # z = 0 exactly, read
     ("calibration", 0, _at(["lasers", 1, "direction"], [1e308, 1e308, 0.0]), None),  # reads: a unit direction
     ("calibration", 0, _at(["mirror", "axis"], [0.0, -1e308, 1e308]), None),
     ("calibration", 0, _at(["residuals"], [0.3]), "residuals"),
