@@ -1,7 +1,9 @@
 """The ``slcvjax`` command line: the parser here, each command in its own module (imported when it runs)."""
 
 import argparse
+import contextlib
 import importlib
+import os
 import signal
 import sys
 import threading
@@ -235,21 +237,46 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _terminated(signum, frame):
-    raise KeyboardInterrupt(f"signal {signum}")
+@contextlib.contextmanager
+def stop_on_signals(command: str):
+    """While it lasts (in the main thread), SIGINT and SIGTERM stop the process at once: the
+    temporaries of the atomic writes under way are deleted (their targets stay absent or as
+    they were), one line goes to stderr, and the exit status is 128 + the signal (130, 143).
+
+    Not an exception: one raised from a signal handler is lost where the handler runs inside a
+    callback (JAX's garbage-collection callback swallowed it, and a calibration stopped by
+    SIGTERM went on to write its output)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(signum, frame):
+        _formats.discard_temporaries()
+        try:
+            sys.stdout.flush()
+            print(f"slcvjax {command}: stopped by signal {signum}; no output was left half written", file=sys.stderr)
+            sys.stderr.flush()
+        finally:
+            os._exit(128 + signum)
+
+    previous = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, signal.SIG_DFL if handler is None else handler)
 
 
 def main(argv: list[str] | None = None) -> int:
     """Run a command; its errors are one line on stderr and exit status 2: a bad input
     (:class:`FormatError`, ``ValueError``), an output that cannot be written or another
-    file-system error (``OSError``, :class:`slcvjax.observations.formats.OutputError`).  SIGTERM
-    and SIGINT stop it as ``KeyboardInterrupt`` (exit 130), so that an atomic write under way
-    deletes its temporary file; no output is ever left half written."""
+    file-system error (``OSError``, :class:`slcvjax.observations.formats.OutputError`).  SIGINT
+    and SIGTERM stop it at once, exit 130 and 143 (:func:`stop_on_signals`); no output is ever
+    left half written."""
     args = build_parser().parse_args(argv)
-    main_thread = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGTERM, _terminated) if main_thread else None
     try:
-        return args.func(args)
+        with stop_on_signals(args.command):
+            return args.func(args)
     except (FormatError, ValueError) as e:
         print(f"slcvjax {args.command}: error: {e}", file=sys.stderr)
         return 2
@@ -257,10 +284,5 @@ def main(argv: list[str] | None = None) -> int:
         text = str(e) if isinstance(e, OutputError) or e.filename is None else f"{e.filename}: {e.strerror or e}"
         print(f"slcvjax {args.command}: error: {text}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"slcvjax {args.command}: interrupted; no output was left half written", file=sys.stderr)
-        return 130
     finally:
         _formats._CHECKED.clear()  # the folders this command checked (a vanished one is not made again)
-        if main_thread:
-            signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)

@@ -126,7 +126,7 @@ def export_opencv(path, camera) -> None:
     """Write a camera as OpenCV FileStorage YAML (camera_matrix, distortion_coefficients)."""
     import cv2
 
-    from ..observations.formats import OutputError, atomic_target, commit_target
+    from ..observations.formats import OutputError, abandon_target, atomic_target, commit_target
 
     path, tmp = atomic_target(path, Path(path).suffix)  # FileStorage's format follows the suffix
     try:
@@ -139,7 +139,7 @@ def export_opencv(path, camera) -> None:
         fs.write("distortion_coefficients", np.asarray(camera.dist, float).reshape(1, 5))
         fs.release()
     except BaseException as e:
-        tmp.unlink(missing_ok=True)
+        abandon_target(tmp)
         if isinstance(e, cv2.error):
             raise OutputError(f"{path}: cannot write: {e.err or e}") from None
         raise

@@ -135,11 +135,30 @@ def _why(e: OSError) -> str:
 
 def temp_name_pattern(path: str | os.PathLike) -> str:
     """The glob of the temporary files an atomic write of ``path`` makes beside it: hidden,
-    named after the target and ending in ``.tmp`` (or ``.tmp<suffix>``).  A write that fails or
-    is interrupted (an exception, SIGINT, SIGTERM in the command line) deletes its own; only a
-    process killed outright (SIGKILL, a power cut) can leave one behind, never the target half
-    written."""
+    named after the target and ending in ``.tmp`` (or ``.tmp<suffix>``).  A write that fails
+    (an exception) deletes its own, and the command line deletes those under way when SIGINT or
+    SIGTERM stops it (:func:`discard_temporaries`); only a process killed outright (SIGKILL, a
+    power cut) can leave one behind, never the target half written."""
     return f".{Path(path).name}.*.tmp*"
+
+
+_ACTIVE: set[Path] = set()  # the temporaries of the atomic writes under way in this process
+
+
+def discard_temporaries() -> None:
+    """Delete the temporaries of the atomic writes under way (their targets untouched): what a
+    process stopped by a signal does before it exits."""
+    for tmp in list(_ACTIVE):
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError:
+            pass
+
+
+def abandon_target(tmp: Path) -> None:
+    """Delete the temporary ``tmp`` of an atomic write that failed."""
+    _ACTIVE.discard(tmp)
+    tmp.unlink(missing_ok=True)
 
 
 def _cannot_write(path: Path, e: OSError) -> OutputError:
@@ -197,6 +216,7 @@ def atomic_target(path: str | os.PathLike, suffix: str = "") -> tuple[Path, Path
         os.close(fd)
     except OSError as e:
         raise _cannot_write(path, e) from None
+    _ACTIVE.add(Path(tmp))
     return path, Path(tmp)
 
 
@@ -219,8 +239,9 @@ def commit_target(path: Path, tmp: Path) -> None:
     try:
         os.chmod(tmp, path.stat().st_mode & 0o7777 if path.is_file() else 0o666 & ~_umask())
         os.replace(tmp, path)
+        _ACTIVE.discard(tmp)
     except OSError as e:
-        tmp.unlink(missing_ok=True)
+        abandon_target(tmp)
         raise (
             OutputError(f"{path}: cannot write: it is a directory") if path.is_dir() else _cannot_write(path, e)
         ) from None
@@ -238,7 +259,7 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> None:
             f.flush()
             os.fsync(f.fileno())
     except BaseException as e:
-        tmp.unlink(missing_ok=True)
+        abandon_target(tmp)
         if isinstance(e, OSError):
             raise _cannot_write(path, e) from None
         raise
