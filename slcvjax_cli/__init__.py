@@ -7,10 +7,13 @@ shows (the presets, the preset's box) are repeated here; ``tests/test_cli.py`` c
 """
 
 import argparse
+import contextlib
 import importlib
 import logging
 import os
+import signal
 import sys
+import threading
 from importlib import metadata
 
 # repeated from slcvjax.observations.simulate (checked by tests/test_cli.py)
@@ -400,8 +403,49 @@ def _run(args: argparse.Namespace, log: logging.Logger) -> int:
             f"slcvjax {version()}, JAX {jax.__version__} on {jax.default_backend()}, "
             f"compilation cache {compilation_cache_dir()}"
         )
+    from slcvjax.observations.formats import OutputError, forget_checked_folders
+
     try:
-        return args.func(args)
+        with stop_on_signals(args.command):
+            return args.func(args)
     except (FormatError, ValueError) as e:
         print(f"slcvjax {args.command}: error: {e}", file=sys.stderr)
         return 2
+    except OSError as e:  # an output that cannot be written, another file-system error: one line
+        text = str(e) if isinstance(e, OutputError) or e.filename is None else f"{e.filename}: {e.strerror or e}"
+        print(f"slcvjax {args.command}: error: {text}", file=sys.stderr)
+        return 2
+    finally:
+        forget_checked_folders()  # the folders this command checked (a vanished one is not made again)
+
+
+@contextlib.contextmanager
+def stop_on_signals(command: str):
+    """While it lasts (in the main thread), SIGINT and SIGTERM stop the process at once: the
+    temporaries of the atomic writes under way are deleted (their targets stay absent or as
+    they were), one line goes to stderr, and the exit status is 128 + the signal (130, 143).
+
+    Not an exception: one raised from a signal handler is lost where the handler runs inside a
+    callback (JAX's garbage-collection callback swallowed it, and a calibration stopped by
+    SIGTERM went on to write its output)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(signum, frame):
+        from slcvjax.observations.formats import discard_temporaries
+
+        discard_temporaries()
+        try:
+            sys.stdout.flush()
+            print(f"slcvjax {command}: stopped by signal {signum}; no output was left half written", file=sys.stderr)
+            sys.stderr.flush()
+        finally:
+            os._exit(128 + signum)
+
+    previous = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, signal.SIG_DFL if handler is None else handler)

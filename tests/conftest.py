@@ -216,7 +216,7 @@ def schema_problems(folder) -> list[str]:
             if '"format"' not in text:
                 continue
             doc = json.loads(text)
-        except (OSError, ValueError):
+        except (OSError, ValueError, RecursionError):  # a fuzzed file may nest past the parser's depth
             continue
         if not isinstance(doc, dict) or doc.get("format") not in schemas.FORMATS:
             continue
@@ -236,5 +236,7 @@ def pytest_runtest_call(item):
     if outcome.excinfo is not None or base is None:
         return
     problems = schema_problems(base)
+    if item.get_closest_marker("hand_written_inputs") is not None:
+        return  # inputs written on purpose outside the formats (fuzzed, minimal by hand): looked at, not judged
     if problems:
         outcome.force_exception(AssertionError("written files do not match their schemas:\n" + "\n".join(problems)))

@@ -110,6 +110,7 @@ def test_the_linear_loss_leaves_no_outlier_out():
     assert plain["rms_px"] > robust["rms_px"] * 1.2
 
 
+@pytest.mark.hand_written_inputs
 def test_a_covariance_without_the_shape_column_is_read(tmp_path):
     """A calibration's covariance over camera 9 + mirror 5 + lasers (the shape given): read with
     the shape's variance 0, the rest in place."""
@@ -128,9 +129,7 @@ def test_a_covariance_without_the_shape_column_is_read(tmp_path):
     small = np.delete(np.delete(full, SHAPE_COLUMN, 0), SHAPE_COLUMN, 1)
     doc["uncertainty"] = {"covariance": {"matrix": small.tolist()}}
     doc["residuals"] = {"sigma_px": 0.3}
-    # a hand-written minimal file (only what measure reads), not one the project writes: named so
-    # that the suite's schema check of written .json files leaves it alone
-    hand = tmp_path / "cal_by_hand.txt"
+    hand = tmp_path / "cal.json"  # a hand-written minimal file: only what measure reads
     hand.write_text(json.dumps(doc))
     cal = read_calibration(hand)
     _, cov = measurement_inputs(hand, cal)

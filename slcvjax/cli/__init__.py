@@ -4,6 +4,6 @@ The parser and the entry point live in the small top-level package ``slcvjax_cli
 nothing of the library: ``slcvjax --help`` and ``slcvjax --version`` answer without importing JAX.
 """
 
-from slcvjax_cli import build_parser, configure_logging, main
+from slcvjax_cli import build_parser, configure_logging, main, stop_on_signals
 
-__all__ = ["build_parser", "configure_logging", "main"]
+__all__ = ["build_parser", "configure_logging", "main", "stop_on_signals"]

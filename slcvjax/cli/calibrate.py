@@ -5,7 +5,7 @@ import sys
 import time
 from pathlib import Path
 
-from ..observations.formats import FormatError, write_calibration
+from ..observations.formats import FormatError, check_writable, write_calibration
 from .common import export_opencv, print_placed, print_report
 
 log = logging.getLogger(__name__)
@@ -58,6 +58,18 @@ def run(args) -> int:
         except (OSError, ValueError) as e:
             raise FormatError(f"{args.options}: (file): cannot read options ({e})") from None
         options = CalibrationOptions.from_json(doc, args.options)
+    out = Path(args.out)
+    if len(inputs) == 1 and out.suffix == ".json":
+        targets = [out]
+    else:
+        if out.suffix == ".json":
+            raise FormatError(f"{out}: several inputs need an output directory, not a .json file")
+        targets = [out / f"{p.stem}.json" for p in inputs]
+        if len({t.name for t in targets}) < len(targets):
+            raise FormatError("inputs: two inputs share a file name; their outputs would collide")
+    read = (*inputs, args.camera, args.start_from, args.options)
+    for target in targets + ([Path(args.export_opencv)] if args.export_opencv else []):
+        check_writable(target, read)  # before the calibration, not after it
     results = []
     for path, obs in zip(inputs, observations, strict=True):
         t0 = time.perf_counter()
@@ -79,15 +91,6 @@ def run(args) -> int:
         cal = to_calibration(res, obs)
         results.append((path, cal))
         print_report(cal, f"{path} ({time.perf_counter() - t0:.1f} s)")
-    out = Path(args.out)
-    if len(inputs) == 1 and out.suffix == ".json":
-        targets = [out]
-    else:
-        if out.suffix == ".json":
-            raise FormatError(f"{out}: several inputs need an output directory, not a .json file")
-        targets = [out / f"{p.stem}.json" for p in inputs]
-        if len({t.name for t in targets}) < len(targets):
-            raise FormatError("inputs: two inputs share a file name; their outputs would collide")
     for (path, cal), target in zip(results, targets, strict=True):
         write_calibration(target, cal)
         log.info(f"wrote {target}")

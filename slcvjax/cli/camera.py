@@ -4,7 +4,7 @@ import logging
 
 import numpy as np
 
-from ..observations.formats import FormatError, write_calibration
+from ..observations.formats import FormatError, check_writable, write_calibration
 from .common import board_arg, export_opencv
 
 log = logging.getLogger(__name__)
@@ -19,6 +19,8 @@ def run(args) -> int:
     cols, rows = board_arg(args.board)
     if args.square <= 0:
         raise FormatError(f"--square: must be positive, got {args.square}")
+    for target in [args.out] + ([args.export_opencv] if args.export_opencv else []):
+        check_writable(target)
     try:
         res = calibrate_camera_images(args.images, (cols, rows), args.square)
     except CalibrationError as e:

@@ -131,16 +131,24 @@ def export_opencv(path, camera) -> None:
     """Write a camera as OpenCV FileStorage YAML (camera_matrix, distortion_coefficients)."""
     import cv2
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{path.suffix}")
-    fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
-    fs.write("image_width", int(camera.width))
-    fs.write("image_height", int(camera.height))
-    fs.write("camera_matrix", np.asarray(camera.K, float))
-    fs.write("distortion_coefficients", np.asarray(camera.dist, float).reshape(1, 5))
-    fs.release()
-    tmp.replace(path)
+    from ..observations.formats import OutputError, abandon_target, atomic_target, commit_target
+
+    path, tmp = atomic_target(path, Path(path).suffix)  # FileStorage's format follows the suffix
+    try:
+        fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
+        if not fs.isOpened():
+            raise OutputError(f"{path}: cannot write: OpenCV cannot open it for writing")
+        fs.write("image_width", int(camera.width))
+        fs.write("image_height", int(camera.height))
+        fs.write("camera_matrix", np.asarray(camera.K, float))
+        fs.write("distortion_coefficients", np.asarray(camera.dist, float).reshape(1, 5))
+        fs.release()
+    except BaseException as e:
+        abandon_target(tmp)
+        if isinstance(e, cv2.error):
+            raise OutputError(f"{path}: cannot write: {e.err or e}") from None
+        raise
+    commit_target(path, tmp)
 
 
 def board_arg(text: str) -> tuple[int, int]:

@@ -3,8 +3,9 @@
 import logging
 import sys
 import time
+from pathlib import Path
 
-from ..observations.formats import write_observations
+from ..observations.formats import check_writable, write_observations
 
 log = logging.getLogger(__name__)
 
@@ -12,6 +13,7 @@ log = logging.getLogger(__name__)
 def run(args) -> int:
     from ..images.detect import detect_folder
 
+    check_writable(args.out, (Path(args.folder) / "setup.json",))
     t0 = time.perf_counter()
     obs, rep = detect_folder(args.folder, progress=sys.stderr.isatty())
     for line in rep.lines():

@@ -24,9 +24,10 @@ def _parse_axis(text: str | None):
 
 def run(args) -> int:
     from ..images.pipe import measure_observations, measurement_inputs, points_document, view_circle
-    from ..observations.formats import read_calibration, read_observations, write_json_atomic
+    from ..observations.formats import check_writable, read_calibration, read_observations, write_json_atomic
 
     cal = read_calibration(args.calibration)
+    check_writable(args.out, (args.calibration, args.input))
     sigma_cal, cov = measurement_inputs(args.calibration, cal)
     sigma = args.pixel_sigma if args.pixel_sigma is not None else sigma_cal
     if sigma is None:

@@ -4,7 +4,7 @@ import logging
 import time
 from pathlib import Path
 
-from ..observations.formats import FormatError, write_calibration, write_observations
+from ..observations.formats import FormatError, check_writable, write_calibration, write_observations
 from .common import board_arg, print_report
 
 log = logging.getLogger(__name__)
@@ -19,6 +19,8 @@ def run(args) -> int:
     pattern = board_arg(args.board)
     if not args.square > 0:
         raise FormatError(f"--square: must be positive, got {args.square}")
+    for target in [args.out] + ([args.observations] if args.observations else []):
+        check_writable(target)
     shape: dict = {"kind": args.mirror}
     for key, val in (("vertex_radius", args.vertex_radius), ("conic_constant", args.conic), ("radius", args.rim)):
         if val is not None:

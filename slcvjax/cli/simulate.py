@@ -5,7 +5,7 @@ import sys
 import time
 from pathlib import Path
 
-from ..observations.formats import write_calibration, write_observations
+from ..observations.formats import check_writable, write_calibration, write_observations
 from .common import summary
 
 log = logging.getLogger(__name__)
@@ -14,6 +14,7 @@ log = logging.getLogger(__name__)
 def run(args) -> int:
     from ..observations.simulate import make_scene, simulate
 
+    check_writable(Path(args.out) / ("pipe_observations.json" if args.pipe is not None else "observations.json"))
     if args.pipe is not None:
         return _simulate_pipe(args)
     t0 = time.perf_counter()

@@ -191,8 +191,8 @@ def read_setup(path: str | Path) -> Setup:
             ctx.fail("spot_sigma_mm", f"must be positive, got {json.dumps(spot_sigma)}")
     rigid = ctx.get(doc, "rigid_boards", "", list, optional=True) or []
     for i, b in enumerate(rigid):
-        if b not in boards:
-            ctx.fail(f"rigid_boards[{i}]", f"unknown board {json.dumps(b)} (known: {', '.join(sorted(boards))})")
+        if not isinstance(b, str) or b not in boards:
+            ctx.fail(f"rigid_boards[{i}]", f"unknown board {json.dumps(b)[:40]} (known: {', '.join(sorted(boards))})")
     known = {"format", "image_size", "mirror_shape", "n_lasers", "laser_azimuth_deg", "boards", "views"}
     extra = {k: v for k, v in doc.items() if k not in known | {"chessboard_views", "spot_sigma_mm", "rigid_boards"}}
     return Setup((w, h), radius, height, n_lasers, boards, views, chess, laser_az, extra, spot_sigma, list(rigid))
@@ -201,12 +201,26 @@ def read_setup(path: str | Path) -> Setup:
 # --------------------------------------------------------------------------- images
 
 
+def _quiet_imread(path: Path) -> np.ndarray | None:
+    """``cv2.imread`` (colour) without OpenCV's own log line on stderr for a broken file: the
+    caller names the file in its error."""
+    log = getattr(getattr(cv2, "utils", None), "logging", None)
+    if log is None:
+        return cv2.imread(str(path), cv2.IMREAD_COLOR)
+    level = log.getLogLevel()
+    log.setLogLevel(log.LOG_LEVEL_SILENT)
+    try:
+        return cv2.imread(str(path), cv2.IMREAD_COLOR)
+    finally:
+        log.setLogLevel(level)
+
+
 def read_image(path: Path, size: tuple[int, int], source: str = "setup.json") -> np.ndarray:
     """Read a colour image and check its size against ``size`` (from ``source``); raises
     :class:`FormatError` naming the file."""
     if not path.is_file():
         raise FormatError(f"{path}: (file): no such image (listed in {source})")
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    img = _quiet_imread(path)
     if img is None:
         raise FormatError(f"{path}: (file): not a readable image (truncated or not PNG/JPEG?)")
     h, w = img.shape[:2]
@@ -675,8 +689,10 @@ def label_boards(
     walls = {k: b for k, b in setup.boards.items() if b.azimuth_deg is not None}
     problems: list[str] = []
     out = {k: (np.zeros((len(b.points), 2)), np.zeros(len(b.points), bool)) for k, b in walls.items()}
-    if det.disc is None or len(det.dots) == 0:
+    if det.disc is None:  # the caller reports the image's "no mirror found"
         return out, problems
+    if len(det.dots) == 0:  # each target is reported, as when some other is found
+        return out, [f"{name}: not found" for name in walls]
     az = azimuth_deg(det.dots, det.disc.centre)
     groups = _split_by_azimuth(az, len(walls))
     names = list(walls)

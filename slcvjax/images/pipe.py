@@ -361,38 +361,50 @@ def measurement_inputs(path, cal) -> tuple[float | None, np.ndarray | None]:
     The covariance is ``uncertainty.covariance.matrix`` when present; a malformed
     one raises :class:`FormatError` naming the file and the field.
     """
-    from ..observations.formats import FormatError
+    from ..observations.formats import FormatError, ReadContext
 
     if cal.rig.mirror is None or cal.rig.lasers.n == 0:
         raise FormatError(f"{path}: mirror, lasers: a camera-only calibration cannot measure laser spots")
-    res = cal.extra.get("residuals") or {}
-    by_kind = res.get("by_kind_sigma_px")
-    spot = by_kind.get("spot") if isinstance(by_kind, dict) else None
-    sigma = spot if spot is not None else res.get("sigma_px")
-    field = "by_kind_sigma_px.spot" if spot is not None else "sigma_px"
-    if sigma is None and res.get("rms_px") is not None:
-        sigma = float(res["rms_px"]) / np.sqrt(2.0)
-    if sigma is not None and (not np.isfinite(float(sigma)) or float(sigma) < 0):
-        raise FormatError(f"{path}: residuals.{field}: expected a non-negative number, got {sigma}")
-    mat = ((cal.extra.get("uncertainty") or {}).get("covariance") or {}).get("matrix")
+    ctx = ReadContext(str(path))
+    res = ctx.get(cal.extra, "residuals", "", dict, optional=True) or {}
+    by_kind = ctx.get(res, "by_kind_sigma_px", "residuals", dict, optional=True) or {}
+    sigma = None
+    for where, val in (
+        ("residuals.by_kind_sigma_px.spot", by_kind.get("spot")),
+        ("residuals.sigma_px", res.get("sigma_px")),
+        ("residuals.rms_px", res.get("rms_px")),
+    ):
+        if val is not None:  # each one given is checked, the first one is used
+            x = ctx.number(val, where)
+            if x < 0:
+                ctx.fail(where, f"expected a non-negative number, got {x:g}")
+            if sigma is None:
+                sigma = x / np.sqrt(2.0) if where.endswith("rms_px") else x  # the 2D RMS: per axis
+    unc = ctx.get(cal.extra, "uncertainty", "", dict, optional=True) or {}
+    covariance = ctx.get(unc, "covariance", "uncertainty", dict, optional=True) or {}
+    mat = ctx.get(covariance, "matrix", "uncertainty.covariance", list, optional=True)
     cov = None
     if mat is not None:
         g = cal.rig.tangent_dim
-        try:
-            cov = np.asarray(mat, dtype=float)
-        except (TypeError, ValueError):
-            raise FormatError(f"{path}: uncertainty.covariance.matrix: not a numeric matrix") from None
-        if cov.shape == (g - 1, g - 1):  # without the mirror's shape column: the shape given
-            cov = np.insert(np.insert(cov, SHAPE_COLUMN, 0.0, axis=0), SHAPE_COLUMN, 0.0, axis=1)
-        if cov.shape != (g, g):
+        n = len(mat)
+        if n not in (g, g - 1):
             raise FormatError(
-                f"{path}: uncertainty.covariance.matrix: shape {cov.shape}, expected {(g, g)} "
-                f"(camera 9 + mirror 6 + 4 per laser, or without the mirror's shape column)"
+                f"{path}: uncertainty.covariance.matrix: {n} rows, expected {g} "
+                f"(camera 9 + mirror 6 + 4 per laser, or {g - 1} without the mirror's shape column)"
             )
-        if not np.all(np.isfinite(cov)):
-            i, j = np.argwhere(~np.isfinite(cov))[0]
-            raise FormatError(f"{path}: uncertainty.covariance.matrix[{i}][{j}]: non-finite value")
-    return (None if sigma is None else float(sigma)), cov
+        cov = ctx.matrix(mat, n, n, "uncertainty.covariance.matrix")
+        scale = float(np.max(np.abs(cov), initial=0.0))
+        bad = np.flatnonzero(np.diag(cov) < -1e-9 * scale)
+        if bad.size:  # a negative variance: a NaN standard deviation in every point measured
+            i = int(bad[0])
+            ctx.fail(f"uncertainty.covariance.matrix[{i}][{i}]", f"a variance must not be negative, got {cov[i, i]:g}")
+        asym = np.abs(cov - cov.T) > 1e-6 * scale
+        if asym.any():
+            i, j = (int(k) for k in np.argwhere(asym)[0])
+            ctx.fail(f"uncertainty.covariance.matrix[{i}][{j}]", f"not symmetric ({cov[i, j]:g} against {cov[j, i]:g})")
+        if n == g - 1:  # without the mirror's shape column: the shape given
+            cov = np.insert(np.insert(cov, SHAPE_COLUMN, 0.0, axis=0), SHAPE_COLUMN, 0.0, axis=1)
+    return sigma, cov
 
 
 def points_document(

@@ -32,10 +32,14 @@ class FormatError(ValueError):
     """Bad input file: the message names the file, the field and the index."""
 
 
+MAX_FLOAT = 1.7976931348623157e308  # the largest float64: an integer past it has no float
+MAX_INT = 2**31 - 1  # the largest integer (a size, a count, an index) a file may give
+
+
 # --------------------------------------------------------------------------- validation helpers
 
 
-class _Ctx:
+class ReadContext:
     def __init__(self, path: str):
         self.path = path
 
@@ -59,6 +63,8 @@ class _Ctx:
     def number(self, val: Any, where: str) -> float:
         if isinstance(val, bool) or not isinstance(val, (int, float)):
             self.fail(where, f"expected a number, got {json.dumps(val)[:40]}")
+        if isinstance(val, int) and abs(val) > MAX_FLOAT:  # an integer beyond float64: no float
+            self.fail(where, f"number out of range ({len(str(abs(val)))} digits)")
         if not math.isfinite(val):
             self.fail(where, f"non-finite number {val}")
         return float(val)
@@ -72,10 +78,13 @@ class _Ctx:
     def integer(self, val: Any, where: str, lo: int | None = None, hi: int | None = None) -> int:
         if isinstance(val, bool) or not isinstance(val, int):
             self.fail(where, f"expected an integer, got {json.dumps(val)[:40]}")
+        shown = str(val) if abs(val) < 10**20 else f"an integer of {len(str(abs(val)))} digits"
         if lo is not None and val < lo:
-            self.fail(where, f"{val} is out of range (minimum {lo})")
+            self.fail(where, f"{shown} is out of range (minimum {lo})")
         if hi is not None and val >= hi:
-            self.fail(where, f"{val} is out of range [0, {hi})")
+            self.fail(where, f"{shown} is out of range [0, {hi})")
+        if abs(val) > MAX_INT:  # a count or size past int32: no array holds it
+            self.fail(where, f"{shown} is out of range (at most {MAX_INT})")
         return val
 
     def vector(self, val: Any, n: int, where: str) -> np.ndarray:
@@ -94,8 +103,8 @@ class _Ctx:
         return [] if val is None else val
 
 
-def load_json(path: str | os.PathLike) -> tuple[_Ctx, Any]:
-    ctx = _Ctx(str(path))
+def load_json(path: str | os.PathLike) -> tuple[ReadContext, Any]:
+    ctx = ReadContext(str(path))
     try:
         text = Path(path).read_text(encoding="utf-8")
     except FileNotFoundError:
@@ -106,27 +115,161 @@ def load_json(path: str | os.PathLike) -> tuple[_Ctx, Any]:
         return ctx, json.loads(text)
     except json.JSONDecodeError as e:
         ctx.fail("(file)", f"not valid JSON ({e.msg} at line {e.lineno} column {e.colno}; truncated?)")
+    except RecursionError:
+        ctx.fail("(file)", "not a file of this format (JSON nested too deeply to read)")
 
 
-def _check_format(ctx: _Ctx, doc: Any, expected: str):
+def _check_format(ctx: ReadContext, doc: Any, expected: str):
     fmt = ctx.get(doc, "format", "", str)
     if fmt != expected:
         ctx.fail("format", f"expected {expected!r}, got {fmt!r}")
 
 
-def write_text_atomic(path: str | os.PathLike, text: str) -> None:
-    """Write a text file atomically (temporary file beside the target, then rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+class OutputError(OSError):
+    """An output that cannot be written: the message names the file and why (one line)."""
+
+
+def _why(e: OSError) -> str:
+    return e.strerror or str(e)
+
+
+def temp_name_pattern(path: str | os.PathLike) -> str:
+    """The glob of the temporary files an atomic write of ``path`` makes beside it: hidden,
+    named after the target and ending in ``.tmp`` (or ``.tmp<suffix>``).  A write that fails
+    (an exception) deletes its own, and the command line deletes those under way when SIGINT or
+    SIGTERM stops it (:func:`discard_temporaries`); only a process killed outright (SIGKILL, a
+    power cut) can leave one behind, never the target half written."""
+    return f".{Path(path).name}.*.tmp*"
+
+
+_ACTIVE: set[Path] = set()  # the temporaries of the atomic writes under way in this process
+
+
+def discard_temporaries() -> None:
+    """Delete the temporaries of the atomic writes under way (their targets untouched): what a
+    process stopped by a signal does before it exits."""
+    for tmp in list(_ACTIVE):
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError:
+            pass
+
+
+def abandon_target(tmp: Path) -> None:
+    """Delete the temporary ``tmp`` of an atomic write that failed."""
+    _ACTIVE.discard(tmp)
+    tmp.unlink(missing_ok=True)
+
+
+def _cannot_write(path: Path, e: OSError) -> OutputError:
+    """The one-line error of an output that cannot be written, naming a file in the way."""
+    for parent in path.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                return OutputError(f"{path}: cannot write: {parent} is a file, not a directory")
+            break
+    return OutputError(f"{path}: cannot write: {_why(e)}")
+
+
+def _same_file(a: Path, b: Path) -> bool:
     try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
+        return a.exists() and b.exists() and a.samefile(b)
+    except OSError:
+        return False
+
+
+def check_writable(path: str | os.PathLike, inputs: tuple = ()) -> None:
+    """Raise :class:`OutputError` where ``path`` cannot be written (its folder cannot be made
+    or takes no file, it is a folder, or it is one of the ``inputs``): a command checks its
+    outputs before a long run."""
+    path = Path(path)
+    for inp in inputs:
+        if inp is not None and _same_file(path, Path(inp)):
+            raise OutputError(f"{path}: would overwrite the input {inp}; give another output")
+    if path.is_dir():
+        raise OutputError(f"{path}: cannot write: it is a directory")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        os.close(fd)
+        os.unlink(tmp)
+    except OSError as e:
+        raise _cannot_write(path, e) from None
+    _CHECKED.add(path.parent.absolute())
+
+
+# the folders :func:`check_writable` found or made: one that has vanished by the time of the
+# write is not made again (an unmounted drive's folder would be made on the disk below it)
+_CHECKED: set[Path] = set()
+
+
+def forget_checked_folders() -> None:
+    """Forget the folders :func:`check_writable` found (a command's end: the next command in the
+    same process checks its own)."""
+    _CHECKED.clear()
+
+
+def atomic_target(path: str | os.PathLike, suffix: str = "") -> tuple[Path, Path]:
+    """``(path, temporary)``: a fresh temporary file beside ``path`` (see
+    :func:`temp_name_pattern`) for a writer to fill and :func:`commit_target` to rename into
+    place; :class:`OutputError` where the folder cannot take it."""
+    path = Path(path)
+    if path.parent.absolute() in _CHECKED and not path.parent.is_dir():
+        raise OutputError(f"{path}: cannot write: its folder {path.parent} has vanished since the command started")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + suffix, dir=path.parent)
+        os.close(fd)
+    except OSError as e:
+        raise _cannot_write(path, e) from None
+    _ACTIVE.add(Path(tmp))
+    return path, Path(tmp)
+
+
+def _umask() -> int:
+    try:  # Linux: read without changing it (os.umask would, for every thread)
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def commit_target(path: Path, tmp: Path) -> None:
+    """Rename the filled temporary ``tmp`` onto ``path`` (atomic), with the mode an ordinary
+    write would give it (the old file's, else 0666 less the umask; the temporary is 0600);
+    :class:`OutputError` where it fails."""
+    try:
+        os.chmod(tmp, path.stat().st_mode & 0o7777 if path.is_file() else 0o666 & ~_umask())
         os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+        _ACTIVE.discard(tmp)
+    except OSError as e:
+        abandon_target(tmp)
+        raise (
+            OutputError(f"{path}: cannot write: it is a directory") if path.is_dir() else _cannot_write(path, e)
+        ) from None
+
+
+def write_text_atomic(path: str | os.PathLike, text: str) -> None:
+    """Write a text file atomically: a temporary file beside the target (:func:`temp_name_pattern`),
+    flushed to disk, then renamed onto it, so the target is either absent, as it was, or whole.
+    Raises :class:`OutputError` (one line naming the file) where it cannot be written, leaving
+    no temporary file."""
+    path, tmp = atomic_target(path)
+    try:
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+    except BaseException as e:
+        abandon_target(tmp)
+        if isinstance(e, OSError):
+            raise _cannot_write(path, e) from None
         raise
+    commit_target(path, tmp)
 
 
 def write_json_atomic(path: str | os.PathLike, doc: Any) -> None:
@@ -192,7 +335,7 @@ class Observations:
 PROJECTIONS = ("perspective", "telecentric")
 
 
-def _pixels(ctx: _Ctx, val: Any, n: int, where: str) -> tuple[np.ndarray, np.ndarray]:
+def _pixels(ctx: ReadContext, val: Any, n: int, where: str) -> tuple[np.ndarray, np.ndarray]:
     if not isinstance(val, list):
         ctx.fail(where, f"expected a list of {n} pixels, got {type(val).__name__}")
     if len(val) != n:
@@ -221,7 +364,7 @@ def shape_missing(shape: dict | None) -> list[str]:
     return [] if shape is None else [k for k in shape_keys(shape["kind"]) if k not in shape]
 
 
-def read_shape(ctx: "_Ctx", shape: Any, where: str, partial: bool = False) -> tuple[float, float, dict | None]:
+def read_shape(ctx: "ReadContext", shape: Any, where: str, partial: bool = False) -> tuple[float, float, dict | None]:
     """A mirror's shape (``mirror_shape``, or a calibration's ``mirror``): the rim's radius and
     sag, and the shape (None for a cone).  ``kind``: cone (``radius``, ``height``), sphere or
     paraboloid (``vertex_radius``, ``radius``), hyperboloid or ellipsoid (those and
@@ -243,7 +386,10 @@ def read_shape(ctx: "_Ctx", shape: Any, where: str, partial: bool = False) -> tu
         ctx.fail(f"{where}.kind", f"unknown mirror kind {kind!r} (known: {known})")
     if kind == "cone":
         radius = ctx.positive(ctx.get(shape, "radius", where), f"{where}.radius")
-        return radius, ctx.positive(ctx.get(shape, "height", where), f"{where}.height"), None
+        height = ctx.positive(ctx.get(shape, "height", where), f"{where}.height")
+        if not math.isfinite(radius / height):  # the slope r / h every ray meets
+            ctx.fail(f"{where}.height", f"the slope radius / height is not finite ({radius:g} / {height:g})")
+        return radius, height, None
     out: dict = {"kind": kind}
     keys = shape_keys(kind)
     for key in keys:
@@ -264,12 +410,17 @@ def read_shape(ctx: "_Ctx", shape: Any, where: str, partial: bool = False) -> tu
         return out.get("radius", 0.0), 0.0, out
     try:
         mirror = mirror_of_shape(out, [0.0, 0.0, 1.0], [0.0, 0.0, 1.0])
+        sag = float(mirror.height)
     except ValueError as e:
         ctx.fail(where, str(e))
-    return out["radius"], float(mirror.height), out
+    except ArithmeticError as e:  # a dimension too large for float64 overflows
+        ctx.fail(where, f"dimensions out of range ({e})")
+    if not math.isfinite(sag):
+        ctx.fail(where, f"dimensions out of range (the rim's sag is {sag})")
+    return out["radius"], sag, out
 
 
-def read_sensor_fields(ctx: _Ctx, doc: Any) -> tuple[tuple[int, int], float, float, int, dict | None]:
+def read_sensor_fields(ctx: ReadContext, doc: Any) -> tuple[tuple[int, int], float, float, int, dict | None]:
     """``image_size``, ``mirror_shape`` (the rim's radius and sag, and the shape: None for a
     cone) and ``n_lasers``, shared by the input formats."""
     size = ctx.get(doc, "image_size", "", list)
@@ -291,10 +442,10 @@ def observations_from_json(doc: Any, source: str) -> Observations:
     """The :class:`Observations` of a ``slcv-observations/1`` document already parsed (``source``
     names it in errors, e.g. ``"cal.json: problem.observations"``); validated as
     :func:`read_observations` validates a file."""
-    return _observations_of(_Ctx(source), doc)
+    return _observations_of(ReadContext(source), doc)
 
 
-def _observations_of(ctx: _Ctx, doc: Any) -> Observations:
+def _observations_of(ctx: ReadContext, doc: Any) -> Observations:
     _check_format(ctx, doc, OBSERVATIONS_FORMAT)
     units = ctx.get(doc, "units", "", str, optional=True)
     if units is not None and units != "mm":
@@ -352,6 +503,13 @@ def _observations_of(ctx: _Ctx, doc: Any) -> Observations:
             rim[j] = ctx.vector(p, 2, f"{where}.rim[{j}]")
         views.append(ViewObs(name, per_board, spots, rim))
 
+    # fields kept in ``extra`` that a calibration reads: checked here, kept as they are
+    for i, b in enumerate(ctx.list_of(doc, "rigid_boards", "", optional=True)):
+        board_points(b, f"rigid_boards[{i}]")
+    det = ctx.get(doc, "detection", "", dict, optional=True)
+    if det is not None:
+        _check_detection(ctx, det, boards, len(views))
+
     known = {
         "format",
         "units",
@@ -367,6 +525,46 @@ def _observations_of(ctx: _Ctx, doc: Any) -> Observations:
     return Observations(
         (w, h), radius, height, n_lasers, boards, cal_views, views, extra, shape, projection, board_types
     )
+
+
+def _check_detection(ctx: ReadContext, det: dict, boards: dict[str, np.ndarray], n_views: int) -> None:
+    """The ``detection`` record of detected observations, as far as a calibration reads it
+    (:mod:`slcvjax.images.centroids`): ``dot_radius_mm`` (per board, a positive number or null),
+    ``spot_sigma_mm`` (positive or null) and ``ambiguous_boards`` (per target left out, its
+    view, board and two or more candidate placements: pixels and the board points' indices)."""
+
+    def known_board(name: Any, where: str) -> int:
+        if not isinstance(name, str) or name not in boards:
+            ctx.fail(where, f"unknown board {json.dumps(name)[:40]} (known: {', '.join(sorted(boards)) or 'none'})")
+        return len(boards[name])
+
+    radii = ctx.get(det, "dot_radius_mm", "detection", dict, optional=True) or {}
+    for b, r in radii.items():
+        known_board(b, f"detection.dot_radius_mm.{b}")
+        if r is not None:
+            ctx.positive(r, f"detection.dot_radius_mm.{b}")
+    sigma = ctx.get(det, "spot_sigma_mm", "detection", optional=True)
+    if sigma is not None:
+        ctx.positive(sigma, "detection.spot_sigma_mm")
+    for i, e in enumerate(ctx.list_of(det, "ambiguous_boards", "detection", optional=True)):
+        where = f"detection.ambiguous_boards[{i}]"
+        ctx.integer(ctx.get(e, "view", where), f"{where}.view", lo=0, hi=n_views)
+        n = known_board(ctx.get(e, "board", where), f"{where}.board")
+        cands = ctx.list_of(e, "candidates", where)
+        if len(cands) < 2:
+            ctx.fail(f"{where}.candidates", f"an ambiguous target has two or more placements, got {len(cands)}")
+        for j, c in enumerate(cands):
+            cw = f"{where}.candidates[{j}]"
+            idx = [
+                ctx.integer(k, f"{cw}.indices[{m}]", lo=0, hi=n) for m, k in enumerate(ctx.list_of(c, "indices", cw))
+            ]
+            if len(set(idx)) < len(idx):
+                ctx.fail(f"{cw}.indices", "a board point is listed twice")
+            pixels = ctx.list_of(c, "pixels", cw)
+            if len(pixels) != len(idx):
+                ctx.fail(f"{cw}.pixels", f"{len(pixels)} pixels for {len(idx)} indices")
+            for m, px in enumerate(pixels):
+                ctx.vector(px, 2, f"{cw}.pixels[{m}]")
 
 
 def _px_list(px: np.ndarray, seen: np.ndarray) -> list:
@@ -435,7 +633,7 @@ def _pose_json(p: Pose) -> dict:
     return {"R": np.asarray(p.R, float).tolist(), "t": np.asarray(p.t, float).tolist()}
 
 
-def _read_pose(ctx: _Ctx, val: Any, where: str) -> Pose:
+def _read_pose(ctx: ReadContext, val: Any, where: str) -> Pose:
     r = ctx.matrix(ctx.get(val, "R", where), 3, 3, f"{where}.R")
     t = ctx.vector(ctx.get(val, "t", where), 3, f"{where}.t")
     if np.abs(r.T @ r - np.eye(3)).max() > 1e-6 or np.linalg.det(r) < 0:
@@ -443,11 +641,12 @@ def _read_pose(ctx: _Ctx, val: Any, where: str) -> Pose:
     return Pose(jnp.asarray(r), jnp.asarray(t))
 
 
-def _unit(ctx: _Ctx, v: np.ndarray, where: str) -> np.ndarray:
-    n = np.linalg.norm(v)
-    if n < 1e-12:
+def _unit(ctx: ReadContext, v: np.ndarray, where: str) -> np.ndarray:
+    m = float(np.max(np.abs(v)))  # scaled first: the norm of [1e308, 1e308, 0] is not inf
+    if m < 1e-12 or m * np.linalg.norm(v / m) < 1e-12:
         ctx.fail(where, "zero vector")
-    return v / n
+    u = v / m
+    return u / np.linalg.norm(u)
 
 
 UNDETERMINED_LASER = "undetermined: the data do not fix this laser's line (see uncertainty.lasers)"
@@ -511,10 +710,10 @@ def read_calibration(path: str | os.PathLike) -> Calibration:
 def calibration_from_json(doc: Any, source: str) -> Calibration:
     """The :class:`Calibration` of a ``slcv-calibration/1`` document already parsed (``source``
     names it in errors); validated as :func:`read_calibration` validates a file."""
-    return _calibration_of(_Ctx(source), doc)
+    return _calibration_of(ReadContext(source), doc)
 
 
-def _calibration_of(ctx: _Ctx, doc: Any) -> Calibration:
+def _calibration_of(ctx: ReadContext, doc: Any) -> Calibration:
     _check_format(ctx, doc, CALIBRATION_FORMAT)
     c = ctx.get(doc, "camera", "", dict)
     w = ctx.integer(ctx.get(c, "width", "camera"), "camera.width", lo=1)

@@ -184,7 +184,7 @@ def _int_pair(ctx, val: Any, where: str, lo: int) -> list[int]:
 
 
 def _type_spec(ctx, b: dict, where: str, kind: str) -> dict:
-    """A typed board's fields, validated (``ctx``: the reader's ``_Ctx``)."""
+    """A typed board's fields, validated (``ctx``: the reader's ``ReadContext``)."""
     if kind == "chessboard":
         inner = _int_pair(ctx, ctx.get(b, "inner", where), f"{where}.inner", lo=2)
         return {
@@ -231,7 +231,7 @@ def _type_spec(ctx, b: dict, where: str, kind: str) -> dict:
 def read_board(ctx, b: Any, where: str) -> tuple[np.ndarray, dict | None]:
     """A board's points and type from its JSON object ``b`` at ``where`` (``boards.NAME``).
 
-    ``ctx`` is the reader's context (:class:`slcvjax.observations.formats._Ctx`: ``fail`` raises
+    ``ctx`` is the reader's context (:class:`slcvjax.observations.formats.ReadContext`: ``fail`` raises
     :class:`~slcvjax.observations.formats.FormatError` naming the file, the field and the index).
     Returns ``(points (N, 3) float64 mm, spec)``: ``spec`` is None for a ``dots`` board (its
     ``points`` required, as before types), else the type's normalised fields (``type`` and the
@@ -253,6 +253,7 @@ def read_board(ctx, b: Any, where: str) -> tuple[np.ndarray, dict | None]:
         bad = np.flatnonzero(np.abs(pts[:, 2]) > 1e-9)
         if bad.size:
             ctx.fail(f"{where}.points[{bad[0]}][2]", f"board points must have z = 0, got {pts[bad[0], 2]:g}")
+        pts[:, 2] = 0.0  # within 1e-9 of it: the board's plane, exactly
     if spec is None:
         return pts, None
     gen = board_points(spec)

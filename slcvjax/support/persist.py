@@ -11,6 +11,13 @@ to ``<cache folder>/traces/``, and a later process deserializes it and calls it
 An entry's name hashes the signature with the package's source code and the versions of
 JAX and jaxlib, so a changed ``slcvjax`` or JAX never loads an old program.  Where the
 cache is off, or exporting fails, the function is an ordinary ``jax.jit``.
+
+An entry is ``MAGIC``, the SHA-256 of its payload, then the payload (a pickle of the
+serialized program and its output's structure), written beside its place and renamed into
+it.  One whose digest does not match (truncated, garbled), or that does not load, is
+damaged: it is deleted with one warning (:func:`slcvjax.support.cache.drop_damaged`) and
+traced again.  Without the digest a garbled program could deserialize and fail only when
+called, or run with a changed constant.
 """
 
 import hashlib
@@ -24,7 +31,7 @@ import jax.numpy as jnp
 import jaxlib
 import numpy as np
 
-from .cache import compilation_cache_dir
+from .cache import compilation_cache_dir, drop_damaged
 
 STATS = {"exported": 0, "loaded": 0}
 # Programs with loops run one at a time: two executed at once from threads
@@ -80,10 +87,33 @@ def _folder() -> Path | None:
     return None if d is None else Path(d) / "traces"
 
 
+MAGIC = b"slcvjax-trace/1\n"
+
+
 def _write_atomic(path: Path, data: bytes) -> None:
     with tempfile.NamedTemporaryFile(dir=path.parent, prefix=".tmp-", delete=False) as f:
-        f.write(data)
+        try:
+            f.write(data)
+        except BaseException:
+            f.close()
+            Path(f.name).unlink(missing_ok=True)
+            raise
     Path(f.name).replace(path)
+
+
+def _frame(payload: bytes) -> bytes:
+    return MAGIC + hashlib.sha256(payload).digest() + payload
+
+
+def unframe(data: bytes) -> bytes:
+    """The payload of an entry; ValueError where it is damaged."""
+    n = len(MAGIC)
+    if data[:n] != MAGIC:
+        raise ValueError("not an slcvjax trace entry (header)" if data else "empty file")
+    digest, payload = data[n : n + 32], data[n + 32 :]
+    if hashlib.sha256(payload).digest() != digest:
+        raise ValueError(f"checksum mismatch over {len(data)} bytes (truncated or garbled)")
+    return payload
 
 
 class PersistentJit:
@@ -127,15 +157,22 @@ class PersistentJit:
         text = (str(tree), tuple((shape, str(dtype)) for shape, dtype in sig[1]))
         key = hashlib.sha256(f"{self.name} {text} {_source_hash()}".encode()).hexdigest()[:40]
         path = folder / f"{self.name}-{key}.jaxexport"
-        if path.exists():
+        try:
+            data = path.read_bytes()
+        except FileNotFoundError:
+            data = None
+        except OSError as e:  # unreadable: traced again, and written over below
+            data = None
+            drop_damaged([path], f"cannot be read: {e}", "traced")
+        if data is not None:
             try:
-                blob = pickle.loads(path.read_bytes())
+                blob = pickle.loads(unframe(data))
                 exported = jax.export.deserialize(bytearray(blob["exported"]))
                 out_tree = jax.tree_util.tree_structure(pickle.loads(blob["skeleton"]))
                 STATS["loaded"] += 1
                 return self._jit(exported), out_tree
-            except Exception:  # noqa: BLE001  (a stale or broken entry is traced again)
-                pass
+            except Exception as e:  # noqa: BLE001  (a damaged entry is dropped and traced again)
+                drop_damaged([path], f"{type(e).__name__}: {e}", "traced")
         box = []
 
         def flat(*xs):
@@ -150,7 +187,7 @@ class PersistentJit:
             skeleton = jax.tree_util.tree_unflatten(out_tree, [0] * out_tree.num_leaves)
             blob = {"exported": bytes(exported.serialize()), "skeleton": pickle.dumps(skeleton)}
             folder.mkdir(parents=True, exist_ok=True)
-            _write_atomic(path, pickle.dumps(blob))
+            _write_atomic(path, _frame(pickle.dumps(blob)))
         except Exception:  # noqa: BLE001  (whatever cannot be exported runs as a plain jit)
             return False
         STATS["exported"] += 1
