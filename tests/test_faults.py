@@ -195,19 +195,19 @@ def test_an_output_that_cannot_be_written_is_one_line_and_exit_2(scene_dir, tmp_
 def test_an_output_folder_that_vanishes_during_the_run_is_one_line_and_exit_2(tmp_path, capsys, monkeypatch, how):
     """The folder is there when the command starts and gone when it writes: it is not made
     again (an unmounted drive's folder would be made on the disk below it)."""
-    import slcvjax.observations.simulate as sim
+    import slcvjax.cli.simulate as command
 
     out = tmp_path / "run" / "out"
-    make_scene = sim.make_scene
+    write = command.write_observations
 
-    def vanish_then_make_scene(*args, **kwargs):  # the command has checked its output by now
+    def vanish_then_write(*args, **kwargs):  # the command has checked its output by now
         assert out.is_dir()
         out.rmdir()
         if how != "removed":
             out.write_text("a file now\n")
-        return make_scene(*args, **kwargs)
+        return write(*args, **kwargs)
 
-    monkeypatch.setattr(sim, "make_scene", vanish_then_make_scene)
+    monkeypatch.setattr(command, "write_observations", vanish_then_write)
     argv = ["simulate", "--preset", "paper", "--lasers", "3", "--views", "2", "--out", str(out)]
     assert main(argv) == 2
     line = _one_error_line(capsys.readouterr().err, "simulate", str(out / "observations.json"))

@@ -14,13 +14,15 @@ log = logging.getLogger(__name__)
 def run(args) -> int:
     from ..observations.simulate import make_scene, simulate
 
-    check_writable(Path(args.out) / ("pipe_observations.json" if args.pipe is not None else "observations.json"))
     if args.pipe is not None:
+        check_writable(Path(args.out) / "pipe_observations.json")
         return _simulate_pipe(args)
     t0 = time.perf_counter()
+    # the arguments checked by the (quick) simulation first: a bad one leaves no output folder
     scene = make_scene(args.preset, n_lasers=args.lasers, n_views=args.views)
     obs, truth = simulate(scene, noise=args.noise, seed=args.seed)
     out = Path(args.out)
+    check_writable(out / "observations.json")  # before any write and the long rendering
     write_observations(out / "observations.json", obs)
     write_calibration(out / "truth.json", truth)
     log.info(summary(obs, truth))
