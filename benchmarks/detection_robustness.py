@@ -21,7 +21,6 @@ their laser's true spot); lasers never found.  Writes JSON naming the machine an
 """
 
 import argparse
-import importlib.util
 import json
 import platform
 import subprocess
@@ -112,11 +111,11 @@ def _render_truth(scene, opts: RenderOptions) -> dict:
     views = []
     for i, vt in enumerate(exact.views):
         dots = {}
-        for b, (uv, ok) in vt.boards.items():
+        for b, (uv, _) in vt.boards.items():
             pts = np.asarray(scene.boards[b])
             ring = (pts[:, None, :] + opts.dot_radius_mm * edge[None]).reshape(-1, 3)
             allp = np.concatenate([pts, ring])
-            puv, pok = (np.asarray(a) for a in project_board_points(rig, scene.box_poses[i][b], jnp.asarray(allp)))
+            puv, pok = (np.array(a) for a in project_board_points(rig, scene.box_poses[i][b], jnp.asarray(allp)))
             pok &= np.all((puv > 1) & (puv < np.array([w, h]) - 2), 1)
             ray = bp(jnp.asarray(np.where(pok[:, None], puv, [w / 2, h / 2])))
             clear = np.asarray(

@@ -258,7 +258,7 @@ def _shade_walls(rig: HeldOutRig, g: _Geometry, view: int, X: np.ndarray, plane:
     grey[onbox] = rig.wall
     if rig.shading:
         grey[onbox] *= 1.0 + rig.shading * np.clip((X[onbox, 2] - rig.grid_z_mm) / 60.0, -1, 1)
-    for j, (name, (R, t)) in enumerate(g.walls.items()):
+    for j, (R, t) in enumerate(g.walls.values()):
         m = plane == j
         if not m.any():
             continue
@@ -409,7 +409,7 @@ def truth(rig: HeldOutRig, g: _Geometry) -> dict:
     views = []
     for v in range(rig.n_views):
         Rb, tb = g.T_box_cam[v]
-        pts, wall_pts = [], []
+        pts = []
         for name in g.walls:
             R, t = _T_cam_wall(g, v, name)
             pts.append(np.concatenate([g.points, ring]) @ R.T + t)

@@ -227,24 +227,52 @@ class MirrorDisc:
     outside_level: float
 
 
+MIRROR_PIECE = 0.05  # a bright region counts as part of the mirror's view when this fraction of the largest
+
+
 def find_mirror(green: np.ndarray) -> MirrorDisc | None:
-    """The mirror's disc: the largest bright region (Otsu on green) with its holes filled."""
-    g8 = green.astype(np.uint8)
+    """The mirror's disc: the bright regions (Otsu on green) of the mirror's view, and the ellipse
+    of its outline.
+
+    The view may be cut into pieces by dark wedges that reach the rim (a box whose corners are
+    open, a dark object): every bright region of at least ``MIRROR_PIECE`` of the largest's area
+    is taken, and their convex hull is the disc.  The ellipse is fitted to the pieces' outline
+    pixels that lie on that hull (within 1.5 px), so neither the wedges' sides nor notches cut
+    into the edge (a dark dot or a spot at the rim) pull it; then refitted to the outline pixels
+    within 2 px of it.  The mask is the hull with its holes filled.
+    """
+    g8 = np.clip(green, 0, 255).astype(np.uint8)
     if float(green.max()) - float(green.min()) < 20:
         return None
     _, bright = cv2.threshold(g8, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(bright, connectivity=8)
     if n < 2:
         return None
-    k = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-    region = (labels == k).astype(np.uint8)
+    areas = stats[1:, cv2.CC_STAT_AREA]
+    keep = 1 + np.flatnonzero(areas >= MIRROR_PIECE * areas.max())
+    region = np.isin(labels, keep).astype(np.uint8)
     contours, _ = cv2.findContours(region, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    outline = max(contours, key=len)
+    pts = np.concatenate([c.reshape(-1, 2) for c in contours])
+    if len(pts) < 20:
+        return None
+    hull = cv2.convexHull(pts.astype(np.int32))
+    on_hull = np.array([cv2.pointPolygonTest(hull, (float(x), float(y)), True) for x, y in pts]) < 1.5
+    outline = pts[on_hull].astype(np.float32)
     if len(outline) < 20:
         return None
+    ell = cv2.fitEllipse(outline)
+    for _ in range(2):
+        (cu, cv_), (a, b), ang = ell
+        probe = MirrorDisc(np.array([cu, cv_]), (a / 2, b / 2), ang, np.zeros(1, bool), 0.0, 0.0)
+        d = outline - np.array([cu, cv_])
+        dist = np.abs(np.hypot(d[:, 0], d[:, 1]) - _ellipse_radius(probe, np.arctan2(d[:, 1], d[:, 0])))
+        near = outline[dist < 2.0]
+        if len(near) < 20:
+            break
+        ell = cv2.fitEllipse(near)
+    (cu, cv_), (a, b), ang = ell
     mask = np.zeros_like(region)
-    cv2.drawContours(mask, [outline], -1, 1, thickness=-1)
-    (cu, cv_), (a, b), ang = cv2.fitEllipse(outline)
+    cv2.drawContours(mask, [hull], -1, 1, thickness=-1)
     inside = float(np.median(green[region > 0]))
     outside = float(np.median(green[mask == 0])) if np.any(mask == 0) else 0.0
     return MirrorDisc(np.array([cu, cv_]), (a / 2, b / 2), ang, mask.astype(bool), inside, outside)
@@ -341,10 +369,15 @@ DOT_CONTRAST = 0.3  # a dot's pixel: below the wall by this fraction of the wall
 DOT_SUPPORT = 0.04  # a dot's centroid sums over its pixels below the wall by this fraction, and 2 px around
 SPOT_SUPPORT = 4.0  # grey levels of red over green (blurred): the faintest part of a spot its centroid sums
 ROW_EVIDENCE = 0.15  # darker than the local wall by this fraction: something lies where a row would
+RIM_EDGE = 4  # px: a dot's region must lie this far inside the mirror's outline to be detected
 
 
 def find_dots(
-    green: np.ndarray, disc: MirrorDisc, edge: int = 4, contrast: float = DOT_CONTRAST, support: float = DOT_SUPPORT
+    green: np.ndarray,
+    disc: MirrorDisc,
+    edge: int = RIM_EDGE,
+    contrast: float = DOT_CONTRAST,
+    support: float = DOT_SUPPORT,
 ) -> np.ndarray:
     """Dark dots inside the mirror's disc: (K, 2) darkness-weighted centroids.
 
@@ -456,6 +489,7 @@ def order_grid(
     dead_zone: float = 0.3,
     rim_margin: float = 25.0,
     probe=None,
+    body_radius: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray] | str | None:
     """Place one board's dots on its grid: (pixels (M, 2), seen (M,)); None where they do not
     form the grid, or a reason where a whole row is missing and the evidence cannot say which.
@@ -469,7 +503,14 @@ def order_grid(
     on which side it lies: the fullest columns extended by one row spacing reach inside
     ``dead_zone`` of the disc's radius (near the apex the image is squeezed and the sensor's
     own reflection sits) or beyond the rim less ``rim_margin`` px (dots there are cut) on that
-    side only, and ``probe`` (see :func:`_darkness_probe`), when given, finds nothing dark
+    side only; where the image's own measure of the sensor's dark reflection is given
+    (``body_radius``, px; 0 where none is seen) these limits follow the grid and the image
+    instead of fixed fractions: through the cone equal steps along a wall image as steps that
+    shrink towards the apex and grow towards the rim, so the row beyond the inner one, extended
+    by one step, is at least that far out (hidden only when that lies within the reflection
+    and a fifth of a step, where a squeezed row may be there unseen), and the row beyond the
+    outer one at least one step out (hidden when one and a half steps reach within ``RIM_EDGE``
+    px of the rim, where a dot is cut); and ``probe`` (see :func:`_darkness_probe`), when given, finds nothing dark
     where the row would lie on the other side (a row there, seen but too faint to be
     detected, would mean the other placement).  Where both sides would be out of sight the
     image cannot tell which row is missing: nothing is placed, and the reason is returned.
@@ -489,78 +530,173 @@ def order_grid(
         inner, outer = (ref[:, 0], ref[:, -1]) if layout.y_dir > 0 else (ref[:, -1], ref[:, 0])
         step = np.abs(np.diff(ref, axis=1))
         step_in, step_out = (step[:, 0], step[:, -1]) if layout.y_dir > 0 else (step[:, -1], step[:, 0])
-        hidden_in = bool(np.all(inner - step_in < dead_zone * disc_radius))
-        hidden_out = bool(np.all(outer + step_out > disc_radius - rim_margin))
-        if (not hidden_in and not hidden_out) or rows - m > 1:
+        if body_radius is None:
+            hid_in = inner - step_in < dead_zone * disc_radius
+            hid_out = outer + step_out > disc_radius - rim_margin
+        else:
+            hid_in = inner - step_in < body_radius + 0.2 * step_in
+            hid_out = outer + 1.5 * step_out > disc_radius - RIM_EDGE
+        if rows - m > 1:
             return None
+        a0 = circular_mean_deg(azimuth_deg(px, centre))
+        col_az_abs = [a0 + float(np.mean(a[groups[k]])) for k in full]
+
+        def dark(edge, step_next, hid) -> bool:
+            """Something dark where the row beyond ``edge`` would lie, in a column where it is in sight."""
+            if probe is None:
+                return False
+            return any(
+                probe(az, r0 + 0.5 * s, r0 + 1.5 * s)
+                for az, r0, s, h in zip(col_az_abs, edge, step_next, hid, strict=True)
+                if not h
+            )
+
+        # the missing row may lie on a side where it would be out of sight in every column, or
+        # where something dark shows in a column where it would be seen (a row too faint to be
+        # detected); on a side in sight that shows nothing, there is no row
+        hidden_in, hidden_out = bool(np.all(hid_in)), bool(np.all(hid_out))
+        maybe_in = hidden_in or dark(inner, -step_in, hid_in)
+        maybe_out = hidden_out or dark(outer, step_out, hid_out)
         if hidden_in and hidden_out:
             return "a whole row is hidden and either neighbouring row could be it (ambiguous rows)"
-        if probe is not None:
-            # the side said to hold no row must show nothing where one would lie
-            a0 = circular_mean_deg(azimuth_deg(px, centre))
-            col_az_abs = [a0 + float(np.mean(a[groups[k]])) for k in full]
-            if hidden_in:  # the row beyond the outer one must be absent
-                edge, step_next = outer, step_out
-            else:
-                edge, step_next = inner, -step_in
-            if any(
-                probe(az, r0 + 0.5 * s, r0 + 1.5 * s) for az, r0, s in zip(col_az_abs, edge, step_next, strict=True)
-            ):
-                return "a whole row is missing and the image shows something on both sides (ambiguous rows)"
+        if maybe_in and maybe_out:
+            return "a whole row is missing and the image shows something on both sides (ambiguous rows)"
+        if not maybe_in and not maybe_out:
+            return None
+        hidden_in = maybe_in
         # grid row 0 comes first in the columns' order: it is the inner row when y grows outwards
         first = 1 if hidden_in == (layout.y_dir > 0) else 0
     col_az = np.array([np.mean(a[g]) for g in groups])
-    row_r = np.full((len(full), rows), np.nan)
-    row_r[:, first : first + m] = ref
-    present = np.arange(first, first + m)
     out = np.zeros((rows * cols, 2))
     seen = np.zeros(rows * cols, bool)
-    for k, g in enumerate(groups):
-        if len(g) == m:
-            rows_of = present
-        else:
-            if len(full) == 1:
-                pred = row_r[0, present]
-            else:
-                fa = col_az[full]
-                o = np.argsort(fa)
-                pred = np.array([np.interp(col_az[k], fa[o], row_r[o, j]) for j in present])
+    present = np.arange(first, first + m)
+    # each column's row radii (NaN: not yet known); the fullest columns first, then column by column
+    # outwards from them, each predicted from its placed neighbours: interpolated in azimuth
+    # between the nearest on either side, else extrapolated along the nearest two on one side
+    # (through the cone a row's image radius drifts across an oblique wall)
+    row_r = np.full((cols, rows), np.nan)
+    for k in full:
+        row_r[k, present] = r[groups[k]]
+    placed = set(full)
+    while len(placed) < cols:
+        k = min((c for c in range(cols) if c not in placed), key=lambda c: min(abs(c - q) for q in placed))
+        pred = _predict_rows(col_az, row_r, sorted(placed), k)[present]
+        g = groups[k]
+        if len(g):
             spacing = np.min(np.abs(np.diff(pred))) if m > 1 else np.inf
             near_row = np.array([int(np.argmin(np.abs(pred - r[i]))) for i in g])
-            near = np.abs(pred[near_row] - r[g]) < 0.3 * spacing
-            rows_of = present[near_row]
-            if len(set(rows_of.tolist())) != len(g) or not near.all():
+            near = np.abs(pred[near_row] - r[g]) < ROW_TOLERANCE * spacing
+            if len(set(near_row.tolist())) != len(g) or not near.all():
                 return None
-        for i, j in zip(g, rows_of, strict=True):
+            # the rows it does not show follow the prediction moved by the column's mean drift from it
+            row_r[k, present] = pred + np.mean(r[g] - pred[near_row])
+            row_r[k, present[near_row]] = r[g]
+        else:
+            row_r[k, present] = pred
+        placed.add(k)
+    for k, g in enumerate(groups):
+        for i in g:
+            j = present[int(np.argmin(np.abs(row_r[k, present] - r[i])))]
             out[j * cols + k] = px[i]
             seen[j * cols + k] = True
     return out, seen
 
 
+ROW_TOLERANCE = 0.3  # a dot of a partial column lies within this fraction of the row spacing of its predicted row
+
+
+def _predict_rows(col_az: np.ndarray, row_r: np.ndarray, placed: list[int], k: int) -> np.ndarray:
+    """Row radii of column ``k`` from the placed columns' (``row_r`` rows), in azimuth ``col_az``."""
+    lo = [q for q in placed if q < k]
+    hi = [q for q in placed if q > k]
+    if lo and hi:
+        a, b = lo[-1], hi[0]
+    elif len(lo) >= 2:
+        a, b = lo[-2], lo[-1]
+    elif len(hi) >= 2:
+        a, b = hi[0], hi[1]
+    else:
+        return row_r[(lo or hi)[0]].copy()
+    w = (col_az[k] - col_az[a]) / (col_az[b] - col_az[a])
+    return row_r[a] + w * (row_r[b] - row_r[a])
+
+
 def _columns(px: np.ndarray, centre: np.ndarray, layout: BoardLayout):
     """A target's dots split into its columns by azimuth (each gap wider than 3x the groups' own
     spread), in grid order, each column in grid order of its rows: ``(groups, azimuths
-    relative to their mean, image radii)``, or None."""
+    relative to their mean, image radii)``, or None.
+
+    The columns image as lines through the image of the cone's apex, which is not the rim's
+    centre (the mirror's tilt and offset, the perspective of the rim): about the rim's centre a
+    column's dots near the apex fan out by degrees.  Where the split about ``centre`` fails,
+    the point the columns meet is fitted to their dots (:func:`_column_point`) and the split is
+    made again about it."""
     cols, rows = layout.cols, layout.rows
     if len(px) < cols or len(px) > cols * rows:
         return None
     a = _wrap(azimuth_deg(px, centre) - circular_mean_deg(azimuth_deg(px, centre)))
     r = np.linalg.norm(px - centre, axis=1)
-    order = np.argsort(a)
-    gaps = np.diff(a[order])
-    if cols > 1:
-        cut = np.sort(np.argsort(gaps)[-(cols - 1) :])
-        groups = np.split(order, cut + 1)
-        spread = max(float(np.ptp(a[g])) for g in groups)
-        if gaps[cut].min() <= 3.0 * max(spread, 0.2):
+    groups = _split_columns(a, cols)
+    if groups is None:
+        near = _column_point(px, centre, a, cols)
+        if near is None:
             return None
-    else:
-        groups = [order]
+        groups = _split_columns(_wrap(azimuth_deg(px, near) - circular_mean_deg(azimuth_deg(px, near))), cols)
+        if groups is None:
+            return None
     if layout.x_dir < 0:
         groups = groups[::-1]
     if any(len(g) > rows for g in groups):
         return None
     return [g[np.argsort(layout.y_dir * r[g])] for g in groups], a, r
+
+
+def _split_columns(a: np.ndarray, cols: int) -> list[np.ndarray] | None:
+    """Indices of ``cols`` groups of azimuths ``a`` (deg, about their mean) split at the widest
+    gaps, in increasing azimuth; None unless each gap is wider than 3x the groups' own spread."""
+    order = np.argsort(a)
+    if cols == 1:
+        return [order]
+    gaps = np.diff(a[order])
+    cut = np.sort(np.argsort(gaps)[-(cols - 1) :])
+    groups = np.split(order, cut + 1)
+    spread = max(float(np.ptp(a[g])) for g in groups)
+    if gaps[cut].min() <= 3.0 * max(spread, 0.2):
+        return None
+    return groups
+
+
+def _column_point(px: np.ndarray, centre: np.ndarray, a: np.ndarray, cols: int) -> np.ndarray | None:
+    """The point where a target's columns meet: the columns first split at the widest gaps of
+    azimuth ``a`` about ``centre``; then Gauss-Newton on the point ``c`` and each column's
+    direction for the dots' distances to the lines through ``c``.  None where fewer than two
+    columns hold two dots or more, where the fit leaves fewer than 2 degrees of freedom, or
+    where ``c`` moves from ``centre`` by more than a quarter of the nearest dot's radius."""
+    order = np.argsort(a)
+    gaps = np.diff(a[order])
+    groups = np.split(order, np.sort(np.argsort(gaps)[-(cols - 1) :]) + 1) if cols > 1 else [order]
+    groups = [g for g in groups if len(g) >= 2]
+    n = sum(len(g) for g in groups)
+    if len(groups) < 2 or n - 2 - len(groups) < 2:
+        return None
+    c = np.asarray(centre, float).copy()
+    th = np.array([np.arctan2(*(px[g] - c).mean(0)[::-1]) for g in groups])
+    for _ in range(10):
+        rows_j, res = [], []
+        for k, g in enumerate(groups):
+            d = px[g] - c
+            s, co = np.sin(th[k]), np.cos(th[k])
+            jac = np.zeros((len(g), 2 + len(groups)))
+            jac[:, 0], jac[:, 1], jac[:, 2 + k] = -s, co, d[:, 0] * co + d[:, 1] * s
+            rows_j.append(jac)
+            res.append(d[:, 0] * s - d[:, 1] * co)
+        step = np.linalg.lstsq(np.concatenate(rows_j), -np.concatenate(res), rcond=None)[0]
+        c, th = c + step[:2], th + step[2:]
+        if np.abs(step[:2]).max() < 1e-3:
+            break
+    if not np.all(np.isfinite(c)) or np.linalg.norm(c - centre) > 0.25 * np.linalg.norm(px - centre, axis=1).min():
+        return None
+    return c
 
 
 MAX_CANDIDATES = 64
@@ -594,21 +730,40 @@ def candidate_placements(
     return out
 
 
-def _darkness_probe(green: np.ndarray, disc: MirrorDisc):
-    """``probe(azimuth_deg, r0, r1)``: whether the image is darker than the wall by ``ROW_EVIDENCE``
-    of the dots' contrast anywhere along the radial segment from image radius ``r0`` to ``r1``
-    (within 2 px across it), 4 px or more inside the mirror's disc; the centre's dark body never counts."""
+def _central_body(green: np.ndarray, disc: MirrorDisc) -> tuple[np.ndarray, np.ndarray | None]:
+    """The pixels darker than the wall by ``ROW_EVIDENCE`` of the dots' contrast 4 px or more
+    inside the disc, and the dark region holding the disc's centre among them (the sensor's own
+    reflection), or None where the centre is not dark."""
     wall = disc.inside_level
     darkest = min(disc.outside_level, float(np.percentile(green[disc.mask], 1)))
     level = wall - ROW_EVIDENCE * (wall - darkest)
     core = cv2.erode(disc.mask.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)  # not the rim's edge
     dark = (green < level) & core
-    # the sensor's own reflection: the dark region holding the disc's centre, and a margin round it
     n, labels = cv2.connectedComponents(dark.astype(np.uint8), connectivity=8)
     cu, cv_ = (int(round(c)) for c in disc.centre)
     if 0 <= cv_ < dark.shape[0] and 0 <= cu < dark.shape[1] and labels[cv_, cu] > 0:
-        body = cv2.dilate((labels == labels[cv_, cu]).astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
-        dark &= ~body
+        return dark, labels == labels[cv_, cu]
+    return dark, None
+
+
+def body_radius(green: np.ndarray, disc: MirrorDisc) -> float:
+    """The image radius (px) of the sensor's dark reflection about the disc's centre (the largest
+    distance of its pixels from the centre), 0 where the centre is not dark."""
+    _, body = _central_body(green, disc)
+    if body is None:
+        return 0.0
+    ys, xs = np.nonzero(body)
+    return float(np.max(np.hypot(xs - disc.centre[0], ys - disc.centre[1])))
+
+
+def _darkness_probe(green: np.ndarray, disc: MirrorDisc):
+    """``probe(azimuth_deg, r0, r1)``: whether the image is darker than the wall by ``ROW_EVIDENCE``
+    of the dots' contrast anywhere along the radial segment from image radius ``r0`` to ``r1``
+    (within 2 px across it), 4 px or more inside the mirror's disc; the centre's dark body never counts."""
+    dark, body = _central_body(green, disc)
+    # the sensor's own reflection: the dark region holding the disc's centre, and a margin round it
+    if body is not None:
+        dark &= ~cv2.dilate(body.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
     h, w = dark.shape
 
     def probe(az_deg: float, r0: float, r1: float) -> bool:
@@ -684,6 +839,8 @@ def label_boards(
     means = [circular_mean_deg(az[g]) for g in groups]
     assign = [int(np.argmin(np.abs(_wrap(m - nominal)))) for m in means]
     used: dict[int, int] = {}
+    probe = None if det.green is None else _darkness_probe(det.green, det.disc)
+    body = None if det.green is None else body_radius(det.green, det.disc)
     for gi, j in enumerate(assign):
         name = names[j]
         d = abs(float(_wrap(means[gi] - nominal[j])))
@@ -691,8 +848,8 @@ def label_boards(
             problems.append(f"{len(groups[gi])} dots near azimuth {means[gi] % 360:.0f} deg match no single target")
             continue
         used[j] = gi
-        probe = None if det.green is None else _darkness_probe(det.green, det.disc)
-        got = order_grid(det.dots[groups[gi]], det.disc.centre, walls[name], float(np.mean(det.disc.axes)), probe=probe)
+        got = order_grid(det.dots[groups[gi]], det.disc.centre, walls[name], float(np.mean(det.disc.axes)),
+                         probe=probe, body_radius=body)  # fmt: skip
         if isinstance(got, str) or got is None:
             why = got if isinstance(got, str) else f"{len(groups[gi])} dots could not be placed on the grid"
             problems.append(f"{name}: {why}; board left out")
