@@ -505,3 +505,83 @@ def render_folder(rig: HeldOutRig, folder: str | Path) -> dict:
     tr = truth(rig, g)
     tr["geometry"] = g
     return tr
+
+
+# ------------------------------------------------------------------ measures
+
+
+def measure(obs, report, truth: dict) -> dict:
+    """The detection of a folder (:func:`slcvjax.detect_folder`'s observations and report) against
+    its truth (:func:`truth`, or the same layout): per view, the rim found (at least 60 rim
+    pixels, RMS distance to the true rim under 0.5 px); the visible dots placed on their grid;
+    dots placed on a wrong grid position (nearer another dot's true pixel than their own's, or
+    over 3 px from it); spots found with the right laser (within 2 px of its true spot), and
+    mislabelled (any other); lasers never found."""
+    from slcvjax import distance_to_rim
+
+    rig = truth["rig"]
+    per_view, lasers_found = [], set()
+    tot = dict(visible=0, placed=0, placed_invisible=0, wrong=0, spots_visible=0, spots_right=0, spots_wrong=0)
+    rim_ok = 0
+    for vd, vt in zip(obs.views, truth["views"], strict=True):
+        d = distance_to_rim(rig, vd.rim) if len(vd.rim) else np.zeros(0)
+        rim = bool(len(vd.rim) >= 60 and np.sqrt(np.mean(d**2)) < 0.5)
+        rim_ok += rim
+        vis = placed = wrong = placed_inv = 0
+        for b, (tuv, tseen) in vt["dots"].items():
+            px, seen = vd.boards[b]
+            vis += int(tseen.sum())
+            placed += int((seen & tseen).sum())
+            placed_inv += int((seen & ~tseen).sum())
+            finite = np.all(np.isfinite(tuv), 1)
+            for i in np.flatnonzero(seen):
+                dist = np.where(finite, np.linalg.norm(tuv - px[i], axis=1), np.inf)
+                if int(np.argmin(dist)) != i or dist[i] > 3.0:
+                    wrong += 1
+        truth_spots = {s["laser"]: s["pixel"] for s in vt["spots"]}
+        right = bad = 0
+        for s in vd.spots:
+            if s.laser in truth_spots and np.linalg.norm(np.asarray(s.pixel) - truth_spots[s.laser]) < 2.0:
+                right += 1
+                lasers_found.add(s.laser)
+            else:
+                bad += 1
+        tot["visible"] += vis
+        tot["placed"] += placed
+        tot["placed_invisible"] += placed_inv
+        tot["wrong"] += wrong
+        tot["spots_visible"] += len(truth_spots)
+        tot["spots_right"] += right
+        tot["spots_wrong"] += bad
+        per_view.append(
+            dict(name=vd.name, rim_pixels=len(vd.rim), rim_found=rim, dots_visible=vis, dots_placed=placed,
+                 wrong=wrong, spots_visible=len(truth_spots), spots_right=right, spots_wrong=bad)
+        )  # fmt: skip
+    n_lasers = obs.n_lasers
+    return {
+        "views": len(obs.views),
+        "rim_found_views": rim_ok,
+        "dots_visible": tot["visible"],
+        "dots_placed": tot["placed"],
+        "dots_placed_fraction": tot["placed"] / max(tot["visible"], 1),
+        "dots_placed_not_visible_whole": tot["placed_invisible"],
+        "dots_wrong_position": tot["wrong"],
+        "spots_visible": tot["spots_visible"],
+        "spots_found_right": tot["spots_right"],
+        "spots_mislabelled": tot["spots_wrong"],
+        "lasers_never_found": sorted(set(range(n_lasers)) - lasers_found),
+        "chessboard_views_found": len(obs.calibration_views),
+        "report": report.summary(),
+        "per_view": per_view,
+    }
+
+
+def goals(m: dict) -> dict:
+    """The goals at 1 grey level of noise: the rim in every view, at least 65 % of the visible dots
+    placed, none on a wrong grid position, no spot mislabelled."""
+    return {
+        "rim_every_view": m["rim_found_views"] == m["views"],
+        "dots_65pct": m["dots_placed_fraction"] >= 0.65,
+        "no_wrong_position": m["dots_wrong_position"] == 0,
+        "no_mislabelled_spot": m["spots_mislabelled"] == 0,
+    }

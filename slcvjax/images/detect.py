@@ -225,6 +225,7 @@ class MirrorDisc:
     mask: np.ndarray
     inside_level: float
     outside_level: float
+    wall_map: np.ndarray | None = None  # the local level of the mirror's view (``wall_level``), once computed
 
 
 MIRROR_PIECE = 0.05  # a bright region counts as part of the mirror's view when this fraction of the largest
@@ -276,6 +277,22 @@ def find_mirror(green: np.ndarray) -> MirrorDisc | None:
     inside = float(np.median(green[region > 0]))
     outside = float(np.median(green[mask == 0])) if np.any(mask == 0) else 0.0
     return MirrorDisc(np.array([cu, cv_]), (a / 2, b / 2), ang, mask.astype(bool), inside, outside)
+
+
+WALL_WINDOW = 1 / 6  # the local wall level: a median over a window of this fraction of the disc's radius
+
+
+def wall_level(green: np.ndarray, disc: MirrorDisc) -> np.ndarray:
+    """The local level of what the mirror shows, per pixel: the median of green over a square
+    window of ``WALL_WINDOW`` of the disc's mean radius (odd, at least 15 px), the pixels off the
+    disc counted at the view's median level.  Light walls lit unevenly keep their dots' and
+    spots' thresholds relative to the wall around them; a dot, or a squeezed row of them, covers
+    far less than half a window."""
+    if disc.wall_map is None:
+        k = max(15, 2 * int(WALL_WINDOW * float(np.mean(disc.axes)) / 2) + 1)
+        filled = np.where(disc.mask, np.clip(green, 0, 255), disc.inside_level).astype(np.uint8)
+        disc.wall_map = cv2.medianBlur(filled, k).astype(float)
+    return disc.wall_map
 
 
 def _ellipse_radius(disc: MirrorDisc, theta: np.ndarray) -> np.ndarray:
@@ -369,6 +386,7 @@ DOT_CONTRAST = 0.3  # a dot's pixel: below the wall by this fraction of the wall
 DOT_SUPPORT = 0.04  # a dot's centroid sums over its pixels below the wall by this fraction, and 2 px around
 SPOT_SUPPORT = 4.0  # grey levels of red over green (blurred): the faintest part of a spot its centroid sums
 ROW_EVIDENCE = 0.15  # darker than the local wall by this fraction: something lies where a row would
+FAINT_DOT_CONTRAST = ROW_EVIDENCE  # a streak this dark, apart from every darker region, is a dot too
 RIM_EDGE = 4  # px: a dot's region must lie this far inside the mirror's outline to be detected
 
 
@@ -378,18 +396,23 @@ def find_dots(
     edge: int = RIM_EDGE,
     contrast: float = DOT_CONTRAST,
     support: float = DOT_SUPPORT,
-) -> np.ndarray:
-    """Dark dots inside the mirror's disc: (K, 2) darkness-weighted centroids.
+    with_faint: bool = False,
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """Dark dots inside the mirror's disc: (K, 2) darkness-weighted centroids (and, ``with_faint``,
+    which of them are the faint ones, (K,) bool).
 
-    A pixel is dark when it lies below the wall's level by ``contrast`` of the way to the
+    A pixel is dark when it lies below the wall's local level (:func:`wall_level`) by ``contrast`` of the way to the
     darkest level (near the apex the cone squeezes a dot into a thin streak that the blur
     lightens to about half the full contrast). A region counts when it lies at least ``edge`` px
     inside the disc's outline, is not the image centre's dark body (regions holding the
-    ellipse centre or larger than 2 % of the disc are skipped) and has at least 3 pixels. Its
+    ellipse centre or larger than 2 % of the disc are skipped) and has at least 3 pixels. A
+    region darker by ``FAINT_DOT_CONTRAST`` only, holding no darker region, counts on the same
+    conditions (a small dot squeezed into a streak narrower than a pixel near the apex) when
+    ``with_faint``. Its
     centroid sums the darkness over the pixels below the wall by ``support`` of that contrast that
     are connected to it (where no other dot's are), grown by 2 px: the whole of its blurred image.
     """
-    wall = disc.inside_level
+    wall = wall_level(green, disc)
     darkest = min(disc.outside_level, float(np.percentile(green[disc.mask], 1)))
     dark_level = wall - contrast * (wall - darkest)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * edge + 1, 2 * edge + 1))
@@ -409,8 +432,30 @@ def find_dots(
         if 0 <= cv_ < labels.shape[0] and 0 <= cu < labels.shape[1] and labels[cv_, cu] == k:
             continue
         ids.append(k)
+    n_strong = len(ids)
+    # fainter streaks (small dots squeezed near the apex and blurred below ``contrast``): regions
+    # darker by ``FAINT_DOT_CONTRAST`` that hold no region found above, on the same conditions
+    weak = ((green < wall - FAINT_DOT_CONTRAST * (wall - darkest)) & disc.mask).astype(np.uint8)
+    nw, wlabels, wstats, _ = cv2.connectedComponentsWithStats(weak, connectivity=8)
+    has_strong = np.zeros(nw, bool)
+    has_strong[np.unique(wlabels[labels > 0])] = True
+    for k in range(1, nw):
+        area = wstats[k, cv2.CC_STAT_AREA]
+        if has_strong[k] or area < 3 or area > 0.02 * area_disc:
+            continue
+        reg = wlabels == k
+        if not core[reg].all():
+            continue
+        if 0 <= cv_ < labels.shape[0] and 0 <= cu < labels.shape[1] and wlabels[cv_, cu] == k:
+            continue
+        labels[reg] = n
+        ids.append(n)
+        n += 1
+    if not with_faint:
+        ids = ids[:n_strong]
     faint = (wall - green > support * (wall - darkest)) & disc.mask
-    return _weighted_centroids(wall - green, _with_faint_edges(labels, faint), ids)
+    dots = _weighted_centroids(wall - green, _with_faint_edges(labels, faint), ids)
+    return (dots, np.arange(len(ids)) >= n_strong) if with_faint else dots
 
 
 def _with_faint_edges(labels: np.ndarray, faint: np.ndarray) -> np.ndarray:
@@ -454,7 +499,7 @@ def find_spots(
     green = bgr[:, :, 1].astype(float)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * edge + 1, 2 * edge + 1))
     core = cv2.erode(disc.mask.astype(np.uint8), kernel).astype(bool)
-    wall = disc.inside_level
+    wall = wall_level(green, disc)
     dotted = (wall - green > DOT_SUPPORT * (wall - disc.outside_level)) & disc.mask  # a dot's faintest edge
     widened = _with_faint_edges(labels, (red > support) & disc.mask)
     grow = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
@@ -518,7 +563,13 @@ def order_grid(
     cols, rows = layout.cols, layout.rows
     split = _columns(px, centre, layout)
     if split is None:
-        return None
+        # near the apex's image a dot's azimuth is least sure: try again without the dots
+        # within a quarter of the others' median radius (they are left out)
+        rad = np.linalg.norm(px - centre, axis=1)
+        keep = rad >= 0.25 * np.median(rad)
+        if keep.all() or keep.sum() < cols:
+            return None
+        return order_grid(px[keep], centre, layout, disc_radius, dead_zone, rim_margin, probe, body_radius)
     groups, a, r = split
     m = max(len(g) for g in groups)
     full = [k for k, g in enumerate(groups) if len(g) == m]
@@ -541,29 +592,30 @@ def order_grid(
         a0 = circular_mean_deg(azimuth_deg(px, centre))
         col_az_abs = [a0 + float(np.mean(a[groups[k]])) for k in full]
 
-        def dark(edge, step_next, hid) -> bool:
-            """Something dark where the row beyond ``edge`` would lie, in a column where it is in sight."""
+        def side(edge, step_next, hid) -> str:
+            """What the image shows where the row beyond ``edge`` would lie: ``hidden`` (out of
+            sight in every column), ``seen`` (something dark in every column where it would be in
+            sight: a row too faint to be detected), ``absent`` (nothing dark in any), ``unclear``."""
+            if np.all(hid):
+                return "hidden"
             if probe is None:
-                return False
-            return any(
-                probe(az, r0 + 0.5 * s, r0 + 1.5 * s)
-                for az, r0, s, h in zip(col_az_abs, edge, step_next, hid, strict=True)
-                if not h
-            )
+                return "absent"
+            dark = [probe(az, r0 + 0.5 * s, r0 + 1.5 * s)
+                    for az, r0, s, h in zip(col_az_abs, edge, step_next, hid, strict=True) if not h]  # fmt: skip
+            return "seen" if all(dark) else "absent" if not any(dark) else "unclear"
 
-        # the missing row may lie on a side where it would be out of sight in every column, or
-        # where something dark shows in a column where it would be seen (a row too faint to be
-        # detected); on a side in sight that shows nothing, there is no row
-        hidden_in, hidden_out = bool(np.all(hid_in)), bool(np.all(hid_out))
-        maybe_in = hidden_in or dark(inner, -step_in, hid_in)
-        maybe_out = hidden_out or dark(outer, step_out, hid_out)
-        if hidden_in and hidden_out:
+        # the missing row lies on the one side that does not show nothing where it would be seen
+        s_in, s_out = side(inner, -step_in, hid_in), side(outer, step_out, hid_out)
+        if s_in == "hidden" and s_out == "hidden":
             return "a whole row is hidden and either neighbouring row could be it (ambiguous rows)"
-        if maybe_in and maybe_out:
-            return "a whole row is missing and the image shows something on both sides (ambiguous rows)"
-        if not maybe_in and not maybe_out:
+        if s_in == "absent" and s_out == "absent":
             return None
-        hidden_in = maybe_in
+        if s_out == "absent":
+            hidden_in = True
+        elif s_in == "absent":
+            hidden_in = False
+        else:
+            return "a whole row is missing and the image shows something on both sides (ambiguous rows)"
         # grid row 0 comes first in the columns' order: it is the inner row when y grows outwards
         first = 1 if hidden_in == (layout.y_dir > 0) else 0
     col_az = np.array([np.mean(a[g]) for g in groups])
@@ -671,7 +723,7 @@ def _column_point(px: np.ndarray, centre: np.ndarray, a: np.ndarray, cols: int) 
     azimuth ``a`` about ``centre``; then Gauss-Newton on the point ``c`` and each column's
     direction for the dots' distances to the lines through ``c``.  None where fewer than two
     columns hold two dots or more, where the fit leaves fewer than 2 degrees of freedom, or
-    where ``c`` moves from ``centre`` by more than a quarter of the nearest dot's radius."""
+    where ``c`` moves from ``centre`` by more than a tenth of the dots' median radius."""
     order = np.argsort(a)
     gaps = np.diff(a[order])
     groups = np.split(order, np.sort(np.argsort(gaps)[-(cols - 1) :]) + 1) if cols > 1 else [order]
@@ -694,7 +746,7 @@ def _column_point(px: np.ndarray, centre: np.ndarray, a: np.ndarray, cols: int) 
         c, th = c + step[:2], th + step[2:]
         if np.abs(step[:2]).max() < 1e-3:
             break
-    if not np.all(np.isfinite(c)) or np.linalg.norm(c - centre) > 0.25 * np.linalg.norm(px - centre, axis=1).min():
+    if not np.all(np.isfinite(c)) or np.linalg.norm(c - centre) > 0.1 * np.median(np.linalg.norm(px - centre, axis=1)):
         return None
     return c
 
@@ -734,7 +786,7 @@ def _central_body(green: np.ndarray, disc: MirrorDisc) -> tuple[np.ndarray, np.n
     """The pixels darker than the wall by ``ROW_EVIDENCE`` of the dots' contrast 4 px or more
     inside the disc, and the dark region holding the disc's centre among them (the sensor's own
     reflection), or None where the centre is not dark."""
-    wall = disc.inside_level
+    wall = wall_level(green, disc)
     darkest = min(disc.outside_level, float(np.percentile(green[disc.mask], 1)))
     level = wall - ROW_EVIDENCE * (wall - darkest)
     core = cv2.erode(disc.mask.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)  # not the rim's edge
@@ -809,6 +861,7 @@ class ImageDetection:
     dots: np.ndarray
     spots: np.ndarray
     green: np.ndarray | None = None  # the image's green channel, for evidence where dots were not found
+    faint: np.ndarray | None = None  # (K,) which dots are faint streaks (``find_dots(with_faint=True)``)
 
 
 def detect_catadioptric(bgr: np.ndarray, name: str = "") -> ImageDetection:
@@ -817,7 +870,8 @@ def detect_catadioptric(bgr: np.ndarray, name: str = "") -> ImageDetection:
     disc = find_mirror(green)
     if disc is None:
         return ImageDetection(name, None, np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2)))
-    return ImageDetection(name, disc, find_rim(green, disc), find_dots(green, disc), find_spots(bgr, disc), green)
+    dots, faint = find_dots(green, disc, with_faint=True)
+    return ImageDetection(name, disc, find_rim(green, disc), dots, find_spots(bgr, disc), green, faint)
 
 
 def label_boards(
@@ -832,8 +886,18 @@ def label_boards(
     out = {k: (np.zeros((len(b.points), 2)), np.zeros(len(b.points), bool)) for k, b in walls.items()}
     if det.disc is None or len(det.dots) == 0:
         return out, problems
-    az = azimuth_deg(det.dots, det.disc.centre)
-    groups = _split_by_azimuth(az, len(walls))
+    faint = np.zeros(len(det.dots), bool) if det.faint is None else det.faint
+    strong = np.flatnonzero(~faint)
+    az_all = azimuth_deg(det.dots, det.disc.centre)
+    az = az_all[strong]
+    groups = [strong[g] for g in _split_by_azimuth(az, len(walls))]
+    # each faint dot joins the group of the nearest dot in azimuth
+    extra: list[list[int]] = [[] for _ in groups]
+    for i in np.flatnonzero(faint):
+        if groups:
+            near = [np.min(np.abs(_wrap(az_all[g] - az_all[i]))) for g in groups]
+            extra[int(np.argmin(near))].append(int(i))
+    az = az_all
     names = list(walls)
     nominal = np.array([walls[k].azimuth_deg for k in names])
     means = [circular_mean_deg(az[g]) for g in groups]
@@ -848,8 +912,7 @@ def label_boards(
             problems.append(f"{len(groups[gi])} dots near azimuth {means[gi] % 360:.0f} deg match no single target")
             continue
         used[j] = gi
-        got = order_grid(det.dots[groups[gi]], det.disc.centre, walls[name], float(np.mean(det.disc.axes)),
-                         probe=probe, body_radius=body)  # fmt: skip
+        got = _place_with_faint(det, groups[gi], extra[gi], walls[name], probe, body)
         if isinstance(got, str) or got is None:
             why = got if isinstance(got, str) else f"{len(groups[gi])} dots could not be placed on the grid"
             problems.append(f"{name}: {why}; board left out")
@@ -866,6 +929,28 @@ def label_boards(
         if j not in used and not any(name in p for p in problems):
             problems.append(f"{name}: not found")
     return out, problems
+
+
+def _place_with_faint(det: ImageDetection, strong: np.ndarray, faint: list[int], layout: BoardLayout, probe, body):
+    """:func:`order_grid` of a target's dots, helped by its faint streaks: they take part in the
+    placement where the other dots alone cannot be placed, or where, with them, every other dot
+    keeps its grid position and more are placed; they are not placed themselves (a streak
+    narrower than a pixel next to the apex, or cut by the sensor's reflection, does not give its
+    dot's centre to a tenth of a pixel)."""
+    radius = float(np.mean(det.disc.axes))
+    got = order_grid(det.dots[strong], det.disc.centre, layout, radius, probe=probe, body_radius=body)
+    if not faint:
+        return got
+    more = order_grid(det.dots[np.r_[strong, faint]], det.disc.centre, layout, radius, probe=probe, body_radius=body)
+    if not isinstance(more, tuple):
+        return got
+    px, seen = more
+    faint_px = det.dots[faint]
+    seen = seen & ~np.any(np.all(px[:, None, :] == faint_px[None, :, :], axis=2), axis=1)
+    if not isinstance(got, tuple):
+        return (px, seen) if seen.any() else got
+    same = np.all(seen[got[1]]) and np.allclose(px[got[1]], got[0][got[1]])
+    return (px, seen) if same and seen.sum() > got[1].sum() else got
 
 
 def _spot_board(az: float, wall_az: dict[str, float], margin: float) -> str | None:
@@ -888,7 +973,9 @@ def label_spots(
 
     Laser azimuths come from ``setup.laser_azimuth_deg`` when given; otherwise the
     spots of all images are split into ``n_lasers`` azimuth clusters and laser ``k``
-    is the ``k``-th cluster by increasing azimuth, counted from the one nearest 0 deg.
+    is the ``k``-th cluster by increasing azimuth, counted from the one nearest 0 deg; where
+    the clusters are not apart by more than their own spread (a laser never found), no spot
+    is labelled.
     A spot's board is the wall target whose dots' mean azimuth (in its image, else the
     nominal one) is nearest; within ``corner_margin`` deg of the bisector of two
     targets the spot may lie on either wall (where the corner falls depends on the
@@ -913,9 +1000,11 @@ def label_spots(
     else:
         groups = _split_by_azimuth(all_az, n)
         centres = np.array([circular_mean_deg(all_az[g]) % 360 for g in groups])
-        if len(centres) < n:
+        if len(centres) < n or not _well_separated(all_az, groups):
             for i in range(len(dets)):
-                problems[i].append(f"the spots form {len(centres)} azimuth groups for {n} lasers; none labelled")
+                problems[i].append(
+                    f"the spots do not form {n} azimuth groups apart from each other (one per laser); none labelled"
+                )
             return spots_out, problems
         start = int(np.argmin(np.abs(_wrap(centres))))
         centres = np.roll(np.sort(centres), -int(np.searchsorted(np.sort(centres), centres[start])))
@@ -954,6 +1043,24 @@ def label_spots(
         if missing:
             problems[i].append(f"no spot for laser {', '.join(missing)}")
     return spots_out, problems
+
+
+def _well_separated(az: np.ndarray, groups: list[np.ndarray]) -> bool:
+    """Whether azimuth groups (deg) are apart by more than any group's own spread: a laser whose
+    spots were never found leaves one group fewer, and the split at the widest gaps then cuts
+    another laser's group in two, across a gap narrower than the groups' spread."""
+    if len(groups) < 2:
+        return True
+    spread = max(float(np.ptp(_wrap(az[g] - circular_mean_deg(az[g])))) for g in groups)
+    means = np.sort(np.array([circular_mean_deg(az[g]) % 360 for g in groups]))
+    lo = np.array([np.min(_wrap(az[g] - circular_mean_deg(az[g]))) for g in groups])
+    hi = np.array([np.max(_wrap(az[g] - circular_mean_deg(az[g]))) for g in groups])
+    order = np.argsort([circular_mean_deg(az[g]) % 360 for g in groups])
+    gaps = [
+        (means[(i + 1) % len(means)] + lo[order[(i + 1) % len(means)]] - means[i] - hi[order[i]]) % 360
+        for i in range(len(means))
+    ]
+    return min(gaps) > max(spread, 1.0)
 
 
 def detect_chessboard(bgr: np.ndarray, cols: int, rows: int) -> np.ndarray | None:
