@@ -114,7 +114,7 @@ def _geometry(rig: HeldOutRig) -> _Geometry:
     rim_c = np.array([*rig.mirror_offset_mm, rig.rim_z])
     apex = rim_c - rig.cone_height * axis
     # lasers on a ring round the axis, beams radiating outwards nearly across it
-    az = np.radians(20.0 + 360.0 / rig.n_lasers * np.arange(rig.n_lasers) + rng.uniform(-4, 4, rig.n_lasers))
+    az = np.radians(10.0 + 360.0 / rig.n_lasers * np.arange(rig.n_lasers) + rng.uniform(-4, 4, rig.n_lasers))
     p = np.stack([rig.laser_ring_mm * np.cos(az), rig.laser_ring_mm * np.sin(az), np.full_like(az, rig.laser_z_mm)], 1)
     aim = az + np.radians(rng.uniform(-2, 2, rig.n_lasers))
     el = np.radians(rng.uniform(-rig.laser_elev_deg, rig.laser_elev_deg, rig.n_lasers))
