@@ -15,8 +15,8 @@ from slcvjax.images.detect import detect_folder
 from ._tracer import HeldOutRig, goals, measure, render_folder
 
 # the held-out rig (800x600, 22 x 13 mm cone, 8 lasers, 4x3 grids at 18 mm pitch, 2.5 mm dots, a 170 mm
-# closed box, the sensor moved +-35 mm, saturated spots, 1 grey level of noise) at 0.6 of its resolution
-SMALL = HeldOutRig(scale=0.6, n_views=5, n_chess=1, seed=11)
+# closed box, the sensor moved +-35 mm, saturated spots, 1 grey level of noise) at 0.8 of its resolution (640x480)
+SMALL = HeldOutRig(scale=0.8, n_views=5, n_chess=1, seed=11)
 
 
 def _check(rig: HeldOutRig, folder) -> dict:

@@ -285,12 +285,14 @@ WALL_WINDOW = 1 / 6  # the local wall level: a median over a window of this frac
 def wall_level(green: np.ndarray, disc: MirrorDisc) -> np.ndarray:
     """The local level of what the mirror shows, per pixel: the median of green over a square
     window of ``WALL_WINDOW`` of the disc's mean radius (odd, at least 15 px), the pixels off the
-    disc counted at the view's median level.  Light walls lit unevenly keep their dots' and
+    disc or darker than half-way to the background (dots, dark wedges through a box's open
+    corners) counted at the view's median level.  Light walls lit unevenly keep their dots' and
     spots' thresholds relative to the wall around them; a dot, or a squeezed row of them, covers
     far less than half a window."""
     if disc.wall_map is None:
         k = max(15, 2 * int(WALL_WINDOW * float(np.mean(disc.axes)) / 2) + 1)
-        filled = np.where(disc.mask, np.clip(green, 0, 255), disc.inside_level).astype(np.uint8)
+        wall = disc.mask & (green > 0.5 * (disc.inside_level + disc.outside_level))
+        filled = np.where(wall, np.clip(green, 0, 255), disc.inside_level).astype(np.uint8)
         disc.wall_map = cv2.medianBlur(filled, k).astype(float)
     return disc.wall_map
 
