@@ -634,14 +634,25 @@ def order_grid(
     placed = set(full)
     while len(placed) < cols:
         k = min((c for c in range(cols) if c not in placed), key=lambda c: min(abs(c - q) for q in placed))
-        pred = _predict_rows(col_az, row_r, sorted(placed), k)[present]
         g = groups[k]
-        if len(g):
+        # the rows predicted two ways: from the nearest placed column as it is, and along the
+        # drift of the nearest two; a dot takes the row both agree on (or the one that fits)
+        fits = {}
+        for how in ("nearest", "drift"):
+            pred = _predict_rows(col_az, row_r, sorted(placed), k, how)[present]
+            if not len(g):
+                fits.setdefault((), pred)
+                continue
             spacing = np.min(np.abs(np.diff(pred))) if m > 1 else np.inf
             near_row = np.array([int(np.argmin(np.abs(pred - r[i]))) for i in g])
             near = np.abs(pred[near_row] - r[g]) < ROW_TOLERANCE * spacing
-            if len(set(near_row.tolist())) != len(g) or not near.all():
-                return None
+            if len(set(near_row.tolist())) == len(g) and near.all():
+                fits.setdefault(tuple(near_row.tolist()), pred)
+        if len(fits) != 1:
+            return None
+        ((rows_k, pred),) = fits.items()
+        if len(g):
+            near_row = np.asarray(rows_k, int)
             # the rows it does not show follow the prediction moved by the column's mean drift from it
             row_r[k, present] = pred + np.mean(r[g] - pred[near_row])
             row_r[k, present[near_row]] = r[g]
@@ -659,12 +670,16 @@ def order_grid(
 ROW_TOLERANCE = 0.3  # a dot of a partial column lies within this fraction of the row spacing of its predicted row
 
 
-def _predict_rows(col_az: np.ndarray, row_r: np.ndarray, placed: list[int], k: int) -> np.ndarray:
-    """Row radii of column ``k`` from the placed columns' (``row_r`` rows), in azimuth ``col_az``."""
+def _predict_rows(col_az: np.ndarray, row_r: np.ndarray, placed: list[int], k: int, how: str = "drift") -> np.ndarray:
+    """Row radii of column ``k`` from the placed columns' (``row_r`` rows), in azimuth ``col_az``:
+    interpolated between the nearest on either side; beyond them, the nearest one's
+    (``how="nearest"``) or extrapolated along the nearest two (``"drift"``)."""
     lo = [q for q in placed if q < k]
     hi = [q for q in placed if q > k]
     if lo and hi:
         a, b = lo[-1], hi[0]
+    elif how == "nearest":
+        return row_r[lo[-1] if lo else hi[0]].copy()
     elif len(lo) >= 2:
         a, b = lo[-2], lo[-1]
     elif len(hi) >= 2:
@@ -1005,7 +1020,8 @@ def label_spots(
         if len(centres) < n or not _well_separated(all_az, groups):
             for i in range(len(dets)):
                 problems[i].append(
-                    f"the spots do not form {n} azimuth groups apart from each other (one per laser); none labelled"
+                    f"the spots do not form {n} azimuth groups apart from each other (one per laser: a laser never "
+                    "found?); none labelled (setup.json's laser_azimuth_deg would label them)"
                 )
             return spots_out, problems
         start = int(np.argmin(np.abs(_wrap(centres))))
