@@ -537,6 +537,7 @@ def order_grid(
     rim_margin: float = 25.0,
     probe=None,
     body_radius: float | None = None,
+    seen_radius: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray] | str | None:
     """Place one board's dots on its grid: (pixels (M, 2), seen (M,)); None where they do not
     form the grid, or a reason where a whole row is missing and the evidence cannot say which.
@@ -557,10 +558,13 @@ def order_grid(
     by one step, is at least that far out (hidden only when that lies within the reflection
     and a fifth of a step, where a squeezed row may be there unseen), and the row beyond the
     outer one at least one step out (hidden when one and a half steps reach within ``RIM_EDGE``
-    px of the rim, where a dot is cut); and ``probe`` (see :func:`_darkness_probe`), when given, finds nothing dark
-    where the row would lie on the other side (a row there, seen but too faint to be
-    detected, would mean the other placement).  Where both sides would be out of sight the
-    image cannot tell which row is missing: nothing is placed, and the reason is returned.
+    px of the rim, where a dot is cut); nor is a row said to be seen where the image has shown
+    no dot at all: within ``seen_radius`` (px) of the centre, the nearest any dot of the image
+    was found (a dim, blurred image's squeezed rows may be there unseen even by the probe); and
+    ``probe`` (see :func:`_darkness_probe`), when given, finds nothing dark where the row would
+    lie on the other side (a row there, seen but too faint to be detected, would mean the other
+    placement).  Where both sides would be out of sight the image cannot tell which row is
+    missing: nothing is placed, and the reason is returned.
     """
     cols, rows = layout.cols, layout.rows
     split = _columns(px, centre, layout)
@@ -571,7 +575,7 @@ def order_grid(
         keep = rad >= 0.25 * np.median(rad)
         if keep.all() or keep.sum() < cols:
             return None
-        return order_grid(px[keep], centre, layout, disc_radius, dead_zone, rim_margin, probe, body_radius)
+        return order_grid(px[keep], centre, layout, disc_radius, dead_zone, rim_margin, probe, body_radius, seen_radius)
     groups, a, r = split
     m = max(len(g) for g in groups)
     full = [k for k, g in enumerate(groups) if len(g) == m]
@@ -587,7 +591,7 @@ def order_grid(
             hid_in = inner - step_in < dead_zone * disc_radius
             hid_out = outer + step_out > disc_radius - rim_margin
         else:
-            hid_in = inner - step_in < body_radius + 0.2 * step_in
+            hid_in = inner - step_in < np.maximum(body_radius + 0.2 * step_in, seen_radius)
             hid_out = outer + 1.5 * step_out > disc_radius - RIM_EDGE
         if rows - m > 1:
             return None
@@ -955,10 +959,12 @@ def _place_with_faint(det: ImageDetection, strong: np.ndarray, faint: list[int],
     narrower than a pixel next to the apex, or cut by the sensor's reflection, does not give its
     dot's centre to a tenth of a pixel)."""
     radius = float(np.mean(det.disc.axes))
-    got = order_grid(det.dots[strong], det.disc.centre, layout, radius, probe=probe, body_radius=body)
+    seen = float(np.min(np.linalg.norm(det.dots - det.disc.centre, axis=1))) if len(det.dots) else np.inf
+    kw = dict(probe=probe, body_radius=body, seen_radius=seen)
+    got = order_grid(det.dots[strong], det.disc.centre, layout, radius, **kw)
     if not faint:
         return got
-    more = order_grid(det.dots[np.r_[strong, faint]], det.disc.centre, layout, radius, probe=probe, body_radius=body)
+    more = order_grid(det.dots[np.r_[strong, faint]], det.disc.centre, layout, radius, **kw)
     if not isinstance(more, tuple):
         return got
     px, seen = more
