@@ -4,22 +4,23 @@ OpenCV stays here, at the edge.  A catadioptric image is read in two channels:
 green shows the scene (white walls, dark dots; 650 nm laser light barely reaches
 it) and red minus green shows the laser spots.  Steps, per image:
 
-1. **Mirror**: Otsu's threshold on green, the largest bright region with its holes
-   filled is the mirror's disc; an ellipse fitted to its outline gives the image
-   centre used for azimuths (``atan2(v - cv, u - cu)``, degrees, so increasing
-   azimuth turns from +u towards +v) and a first rim.
+1. **Mirror**: Otsu's threshold on green, the bright regions of the mirror's view (pieces of
+   it where dark wedges cut it up to the rim) and their convex hull are the mirror's disc; an
+   ellipse fitted to their outline on the hull gives the image centre used for azimuths
+   (``atan2(v - cv, u - cu)``, degrees, so increasing azimuth turns from +u towards +v) and a
+   first rim.
 2. **Rim**: in each sector of azimuth about that centre, a blurred step fitted to the
    pixels across the ellipse gives the edge's sub-pixel place.
-3. **Dots**: dark connected regions inside the disc (away from its edge and not
-   the dark centre), each located by its darkness-weighted centroid over its whole
-   faint image.
+3. **Dots**: dark connected regions inside the disc (against the wall's local level, away
+   from its edge and not the dark centre), each located by its darkness-weighted centroid
+   over its whole faint image; fainter streaks are kept apart, as evidence for a grid only.
 4. **Spots**: connected regions of red minus green above a threshold, each located
    by the centroid of red over green over its whole profile.
 
 Then, per image, the dots are grouped by azimuth into the boards of the setup
 (each wall target has a nominal azimuth and the directions of its x and y axes
 in the image), and a group is ordered into its grid (rows by image radius,
-columns by azimuth) only when it holds exactly ``cols x rows`` dots.  Across the
+columns by azimuth) only where the image says which dot is which (:func:`order_grid`).  Across the
 whole folder the spots are labelled with their lasers: the lasers are fixed on
 the sensor, so each one's spots share an azimuth in every image.  Anything
 that cannot be identified without guessing is left out and reported.
