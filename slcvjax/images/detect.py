@@ -4,22 +4,23 @@ OpenCV stays here, at the edge.  A catadioptric image is read in two channels:
 green shows the scene (white walls, dark dots; 650 nm laser light barely reaches
 it) and red minus green shows the laser spots.  Steps, per image:
 
-1. **Mirror**: Otsu's threshold on green, the largest bright region with its holes
-   filled is the mirror's disc; an ellipse fitted to its outline gives the image
-   centre used for azimuths (``atan2(v - cv, u - cu)``, degrees, so increasing
-   azimuth turns from +u towards +v) and a first rim.
+1. **Mirror**: Otsu's threshold on green, the bright regions of the mirror's view (pieces of
+   it where dark wedges cut it up to the rim) and their convex hull are the mirror's disc; an
+   ellipse fitted to their outline on the hull gives the image centre used for azimuths
+   (``atan2(v - cv, u - cu)``, degrees, so increasing azimuth turns from +u towards +v) and a
+   first rim.
 2. **Rim**: in each sector of azimuth about that centre, a blurred step fitted to the
    pixels across the ellipse gives the edge's sub-pixel place.
-3. **Dots**: dark connected regions inside the disc (away from its edge and not
-   the dark centre), each located by its darkness-weighted centroid over its whole
-   faint image.
+3. **Dots**: dark connected regions inside the disc (against the wall's local level, away
+   from its edge and not the dark centre), each located by its darkness-weighted centroid
+   over its whole faint image; fainter streaks are kept apart, as evidence for a grid only.
 4. **Spots**: connected regions of red minus green above a threshold, each located
    by the centroid of red over green over its whole profile.
 
 Then, per image, the dots are grouped by azimuth into the boards of the setup
 (each wall target has a nominal azimuth and the directions of its x and y axes
 in the image), and a group is ordered into its grid (rows by image radius,
-columns by azimuth) only when it holds exactly ``cols x rows`` dots.  Across the
+columns by azimuth) only where the image says which dot is which (:func:`order_grid`).  Across the
 whole folder the spots are labelled with their lasers: the lasers are fixed on
 the sensor, so each one's spots share an azimuth in every image.  Anything
 that cannot be identified without guessing is left out and reported.
@@ -239,29 +240,76 @@ class MirrorDisc:
     mask: np.ndarray
     inside_level: float
     outside_level: float
+    wall_map: np.ndarray | None = None  # the local level of the mirror's view (``wall_level``), once computed
+
+
+MIRROR_PIECE = 0.05  # a bright region counts as part of the mirror's view when this fraction of the largest
 
 
 def find_mirror(green: np.ndarray) -> MirrorDisc | None:
-    """The mirror's disc: the largest bright region (Otsu on green) with its holes filled."""
-    g8 = green.astype(np.uint8)
+    """The mirror's disc: the bright regions (Otsu on green) of the mirror's view, and the ellipse
+    of its outline.
+
+    The view may be cut into pieces by dark wedges that reach the rim (a box whose corners are
+    open, a dark object): every bright region of at least ``MIRROR_PIECE`` of the largest's area
+    is taken, and their convex hull is the disc.  The ellipse is fitted to the pieces' outline
+    pixels that lie on that hull (within 1.5 px), so neither the wedges' sides nor notches cut
+    into the edge (a dark dot or a spot at the rim) pull it; then refitted to the outline pixels
+    within 2 px of it.  The mask is the hull with its holes filled.
+    """
+    g8 = np.clip(green, 0, 255).astype(np.uint8)
     if float(green.max()) - float(green.min()) < 20:
         return None
     _, bright = cv2.threshold(g8, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(bright, connectivity=8)
     if n < 2:
         return None
-    k = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-    region = (labels == k).astype(np.uint8)
+    areas = stats[1:, cv2.CC_STAT_AREA]
+    keep = 1 + np.flatnonzero(areas >= MIRROR_PIECE * areas.max())
+    region = np.isin(labels, keep).astype(np.uint8)
     contours, _ = cv2.findContours(region, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    outline = max(contours, key=len)
+    pts = np.concatenate([c.reshape(-1, 2) for c in contours])
+    if len(pts) < 20:
+        return None
+    hull = cv2.convexHull(pts.astype(np.int32))
+    on_hull = np.array([cv2.pointPolygonTest(hull, (float(x), float(y)), True) for x, y in pts]) < 1.5
+    outline = pts[on_hull].astype(np.float32)
     if len(outline) < 20:
         return None
+    ell = cv2.fitEllipse(outline)
+    for _ in range(2):
+        (cu, cv_), (a, b), ang = ell
+        probe = MirrorDisc(np.array([cu, cv_]), (a / 2, b / 2), ang, np.zeros(1, bool), 0.0, 0.0)
+        d = outline - np.array([cu, cv_])
+        dist = np.abs(np.hypot(d[:, 0], d[:, 1]) - _ellipse_radius(probe, np.arctan2(d[:, 1], d[:, 0])))
+        near = outline[dist < 2.0]
+        if len(near) < 20:
+            break
+        ell = cv2.fitEllipse(near)
+    (cu, cv_), (a, b), ang = ell
     mask = np.zeros_like(region)
-    cv2.drawContours(mask, [outline], -1, 1, thickness=-1)
-    (cu, cv_), (a, b), ang = cv2.fitEllipse(outline)
+    cv2.drawContours(mask, [hull], -1, 1, thickness=-1)
     inside = float(np.median(green[region > 0]))
     outside = float(np.median(green[mask == 0])) if np.any(mask == 0) else 0.0
     return MirrorDisc(np.array([cu, cv_]), (a / 2, b / 2), ang, mask.astype(bool), inside, outside)
+
+
+WALL_WINDOW = 1 / 6  # the local wall level: a median over a window of this fraction of the disc's radius
+
+
+def wall_level(green: np.ndarray, disc: MirrorDisc) -> np.ndarray:
+    """The local level of what the mirror shows, per pixel: the median of green over a square
+    window of ``WALL_WINDOW`` of the disc's mean radius (odd, at least 15 px), the pixels off the
+    disc or darker than half-way to the background (dots, dark wedges through a box's open
+    corners) counted at the view's median level.  Light walls lit unevenly keep their dots' and
+    spots' thresholds relative to the wall around them; a dot, or a squeezed row of them, covers
+    far less than half a window."""
+    if disc.wall_map is None:
+        k = max(15, 2 * int(WALL_WINDOW * float(np.mean(disc.axes)) / 2) + 1)
+        wall = disc.mask & (green > 0.5 * (disc.inside_level + disc.outside_level))
+        filled = np.where(wall, np.clip(green, 0, 255), disc.inside_level).astype(np.uint8)
+        disc.wall_map = cv2.medianBlur(filled, k).astype(float)
+    return disc.wall_map
 
 
 def _ellipse_radius(disc: MirrorDisc, theta: np.ndarray) -> np.ndarray:
@@ -355,22 +403,33 @@ DOT_CONTRAST = 0.3  # a dot's pixel: below the wall by this fraction of the wall
 DOT_SUPPORT = 0.04  # a dot's centroid sums over its pixels below the wall by this fraction, and 2 px around
 SPOT_SUPPORT = 4.0  # grey levels of red over green (blurred): the faintest part of a spot its centroid sums
 ROW_EVIDENCE = 0.15  # darker than the local wall by this fraction: something lies where a row would
+FAINT_DOT_CONTRAST = ROW_EVIDENCE  # a streak this dark, apart from every darker region, is a dot too
+RIM_EDGE = 4  # px: a dot's region must lie this far inside the mirror's outline to be detected
 
 
 def find_dots(
-    green: np.ndarray, disc: MirrorDisc, edge: int = 4, contrast: float = DOT_CONTRAST, support: float = DOT_SUPPORT
-) -> np.ndarray:
-    """Dark dots inside the mirror's disc: (K, 2) darkness-weighted centroids.
+    green: np.ndarray,
+    disc: MirrorDisc,
+    edge: int = RIM_EDGE,
+    contrast: float = DOT_CONTRAST,
+    support: float = DOT_SUPPORT,
+    with_faint: bool = False,
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """Dark dots inside the mirror's disc: (K, 2) darkness-weighted centroids (and, ``with_faint``,
+    which of them are the faint ones, (K,) bool).
 
-    A pixel is dark when it lies below the wall's level by ``contrast`` of the way to the
+    A pixel is dark when it lies below the wall's local level (:func:`wall_level`) by ``contrast`` of the way to the
     darkest level (near the apex the cone squeezes a dot into a thin streak that the blur
     lightens to about half the full contrast). A region counts when it lies at least ``edge`` px
     inside the disc's outline, is not the image centre's dark body (regions holding the
-    ellipse centre or larger than 2 % of the disc are skipped) and has at least 3 pixels. Its
+    ellipse centre or larger than 2 % of the disc are skipped) and has at least 3 pixels. A
+    region darker by ``FAINT_DOT_CONTRAST`` only, holding no darker region, counts on the same
+    conditions (a small dot squeezed into a streak narrower than a pixel near the apex) when
+    ``with_faint``. Its
     centroid sums the darkness over the pixels below the wall by ``support`` of that contrast that
     are connected to it (where no other dot's are), grown by 2 px: the whole of its blurred image.
     """
-    wall = disc.inside_level
+    wall = wall_level(green, disc)
     darkest = min(disc.outside_level, float(np.percentile(green[disc.mask], 1)))
     dark_level = wall - contrast * (wall - darkest)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * edge + 1, 2 * edge + 1))
@@ -390,8 +449,30 @@ def find_dots(
         if 0 <= cv_ < labels.shape[0] and 0 <= cu < labels.shape[1] and labels[cv_, cu] == k:
             continue
         ids.append(k)
+    n_strong = len(ids)
+    # fainter streaks (small dots squeezed near the apex and blurred below ``contrast``): regions
+    # darker by ``FAINT_DOT_CONTRAST`` that hold no region found above, on the same conditions
+    weak = ((green < wall - FAINT_DOT_CONTRAST * (wall - darkest)) & disc.mask).astype(np.uint8)
+    nw, wlabels, wstats, _ = cv2.connectedComponentsWithStats(weak, connectivity=8)
+    has_strong = np.zeros(nw, bool)
+    has_strong[np.unique(wlabels[labels > 0])] = True
+    for k in range(1, nw):
+        area = wstats[k, cv2.CC_STAT_AREA]
+        if has_strong[k] or area < 3 or area > 0.02 * area_disc:
+            continue
+        reg = wlabels == k
+        if not core[reg].all():
+            continue
+        if 0 <= cv_ < labels.shape[0] and 0 <= cu < labels.shape[1] and wlabels[cv_, cu] == k:
+            continue
+        labels[reg] = n
+        ids.append(n)
+        n += 1
+    if not with_faint:
+        ids = ids[:n_strong]
     faint = (wall - green > support * (wall - darkest)) & disc.mask
-    return _weighted_centroids(wall - green, _with_faint_edges(labels, faint), ids)
+    dots = _weighted_centroids(wall - green, _with_faint_edges(labels, faint), ids)
+    return (dots, np.arange(len(ids)) >= n_strong) if with_faint else dots
 
 
 def _with_faint_edges(labels: np.ndarray, faint: np.ndarray) -> np.ndarray:
@@ -435,7 +516,7 @@ def find_spots(
     green = bgr[:, :, 1].astype(float)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * edge + 1, 2 * edge + 1))
     core = cv2.erode(disc.mask.astype(np.uint8), kernel).astype(bool)
-    wall = disc.inside_level
+    wall = wall_level(green, disc)
     dotted = (wall - green > DOT_SUPPORT * (wall - disc.outside_level)) & disc.mask  # a dot's faintest edge
     widened = _with_faint_edges(labels, (red > support) & disc.mask)
     grow = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
@@ -470,6 +551,8 @@ def order_grid(
     dead_zone: float = 0.3,
     rim_margin: float = 25.0,
     probe=None,
+    body_radius: float | None = None,
+    seen_radius: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray] | str | None:
     """Place one board's dots on its grid: (pixels (M, 2), seen (M,)); None where they do not
     form the grid, or a reason where a whole row is missing and the evidence cannot say which.
@@ -483,15 +566,31 @@ def order_grid(
     on which side it lies: the fullest columns extended by one row spacing reach inside
     ``dead_zone`` of the disc's radius (near the apex the image is squeezed and the sensor's
     own reflection sits) or beyond the rim less ``rim_margin`` px (dots there are cut) on that
-    side only, and ``probe`` (see :func:`_darkness_probe`), when given, finds nothing dark
-    where the row would lie on the other side (a row there, seen but too faint to be
-    detected, would mean the other placement).  Where both sides would be out of sight the
-    image cannot tell which row is missing: nothing is placed, and the reason is returned.
+    side only; where the image's own measure of the sensor's dark reflection is given
+    (``body_radius``, px; 0 where none is seen) these limits follow the grid and the image
+    instead of fixed fractions: through the cone equal steps along a wall image as steps that
+    shrink towards the apex and grow towards the rim, so the row beyond the inner one, extended
+    by one step, is at least that far out (hidden only when that lies within the reflection
+    and a fifth of a step, where a squeezed row may be there unseen), and the row beyond the
+    outer one at least one step out (hidden when one and a half steps reach within ``RIM_EDGE``
+    px of the rim, where a dot is cut); nor is a row said to be seen where the image has shown
+    no dot at all: within ``seen_radius`` (px) of the centre, the nearest any dot of the image
+    was found (a dim, blurred image's squeezed rows may be there unseen even by the probe); and
+    ``probe`` (see :func:`_darkness_probe`), when given, finds nothing dark where the row would
+    lie on the other side (a row there, seen but too faint to be detected, would mean the other
+    placement).  Where both sides would be out of sight the image cannot tell which row is
+    missing: nothing is placed, and the reason is returned.
     """
     cols, rows = layout.cols, layout.rows
     split = _columns(px, centre, layout)
     if split is None:
-        return None
+        # near the apex's image a dot's azimuth is least sure: try again without the dots
+        # within a quarter of the others' median radius (they are left out)
+        rad = np.linalg.norm(px - centre, axis=1)
+        keep = rad >= 0.25 * np.median(rad)
+        if keep.all() or keep.sum() < cols:
+            return None
+        return order_grid(px[keep], centre, layout, disc_radius, dead_zone, rim_margin, probe, body_radius, seen_radius)
     groups, a, r = split
     m = max(len(g) for g in groups)
     full = [k for k, g in enumerate(groups) if len(g) == m]
@@ -503,78 +602,189 @@ def order_grid(
         inner, outer = (ref[:, 0], ref[:, -1]) if layout.y_dir > 0 else (ref[:, -1], ref[:, 0])
         step = np.abs(np.diff(ref, axis=1))
         step_in, step_out = (step[:, 0], step[:, -1]) if layout.y_dir > 0 else (step[:, -1], step[:, 0])
-        hidden_in = bool(np.all(inner - step_in < dead_zone * disc_radius))
-        hidden_out = bool(np.all(outer + step_out > disc_radius - rim_margin))
-        if (not hidden_in and not hidden_out) or rows - m > 1:
+        if body_radius is None:
+            hid_in = inner - step_in < dead_zone * disc_radius
+            hid_out = outer + step_out > disc_radius - rim_margin
+        else:
+            hid_in = inner - step_in < np.maximum(body_radius + 0.2 * step_in, seen_radius)
+            hid_out = outer + 1.5 * step_out > disc_radius - RIM_EDGE
+        if rows - m > 1:
             return None
-        if hidden_in and hidden_out:
+        a0 = circular_mean_deg(azimuth_deg(px, centre))
+        col_az_abs = [a0 + float(np.mean(a[groups[k]])) for k in full]
+
+        def side(edge, step_next, hid) -> str:
+            """What the image shows where the row beyond ``edge`` would lie: ``hidden`` (out of
+            sight in every column), ``seen`` (something dark in every column where it would be in
+            sight: a row too faint to be detected), ``absent`` (nothing dark in any), ``unclear``."""
+            if np.all(hid):
+                return "hidden"
+            if probe is None:
+                return "absent"
+            dark = [probe(az, r0 + 0.5 * s, r0 + 1.5 * s)
+                    for az, r0, s, h in zip(col_az_abs, edge, step_next, hid, strict=True) if not h]  # fmt: skip
+            return "seen" if all(dark) else "absent" if not any(dark) else "unclear"
+
+        # the missing row lies on the one side that does not show nothing where it would be seen
+        s_in, s_out = side(inner, -step_in, hid_in), side(outer, step_out, hid_out)
+        if s_in == "hidden" and s_out == "hidden":
             return "a whole row is hidden and either neighbouring row could be it (ambiguous rows)"
-        if probe is not None:
-            # the side said to hold no row must show nothing where one would lie
-            a0 = circular_mean_deg(azimuth_deg(px, centre))
-            col_az_abs = [a0 + float(np.mean(a[groups[k]])) for k in full]
-            if hidden_in:  # the row beyond the outer one must be absent
-                edge, step_next = outer, step_out
-            else:
-                edge, step_next = inner, -step_in
-            if any(
-                probe(az, r0 + 0.5 * s, r0 + 1.5 * s) for az, r0, s in zip(col_az_abs, edge, step_next, strict=True)
-            ):
-                return "a whole row is missing and the image shows something on both sides (ambiguous rows)"
+        if s_in == "absent" and s_out == "absent":
+            return None
+        if s_out == "absent":
+            hidden_in = True
+        elif s_in == "absent":
+            hidden_in = False
+        else:
+            return "a whole row is missing and the image shows something on both sides (ambiguous rows)"
         # grid row 0 comes first in the columns' order: it is the inner row when y grows outwards
         first = 1 if hidden_in == (layout.y_dir > 0) else 0
     col_az = np.array([np.mean(a[g]) for g in groups])
-    row_r = np.full((len(full), rows), np.nan)
-    row_r[:, first : first + m] = ref
-    present = np.arange(first, first + m)
     out = np.zeros((rows * cols, 2))
     seen = np.zeros(rows * cols, bool)
-    for k, g in enumerate(groups):
-        if len(g) == m:
-            rows_of = present
-        else:
-            if len(full) == 1:
-                pred = row_r[0, present]
-            else:
-                fa = col_az[full]
-                o = np.argsort(fa)
-                pred = np.array([np.interp(col_az[k], fa[o], row_r[o, j]) for j in present])
+    present = np.arange(first, first + m)
+    # each column's row radii (NaN: not yet known); the fullest columns first, then column by column
+    # outwards from them, each predicted from its placed neighbours: interpolated in azimuth
+    # between the nearest on either side, else extrapolated along the nearest two on one side
+    # (through the cone a row's image radius drifts across an oblique wall)
+    row_r = np.full((cols, rows), np.nan)
+    for k in full:
+        row_r[k, present] = r[groups[k]]
+    placed = set(full)
+    while len(placed) < cols:
+        k = min((c for c in range(cols) if c not in placed), key=lambda c: min(abs(c - q) for q in placed))
+        g = groups[k]
+        # the rows predicted two ways: from the nearest placed column as it is, and along the
+        # drift of the nearest two; a dot takes the row both agree on (or the one that fits)
+        fits = {}
+        for how in ("nearest", "drift"):
+            pred = _predict_rows(col_az, row_r, sorted(placed), k, how)[present]
+            if not len(g):
+                fits.setdefault((), pred)
+                continue
             spacing = np.min(np.abs(np.diff(pred))) if m > 1 else np.inf
             near_row = np.array([int(np.argmin(np.abs(pred - r[i]))) for i in g])
-            near = np.abs(pred[near_row] - r[g]) < 0.3 * spacing
-            rows_of = present[near_row]
-            if len(set(rows_of.tolist())) != len(g) or not near.all():
-                return None
-        for i, j in zip(g, rows_of, strict=True):
+            near = np.abs(pred[near_row] - r[g]) < ROW_TOLERANCE * spacing
+            if len(set(near_row.tolist())) == len(g) and near.all():
+                fits.setdefault(tuple(near_row.tolist()), pred)
+        if len(fits) != 1:
+            return None
+        ((rows_k, pred),) = fits.items()
+        if len(g):
+            near_row = np.asarray(rows_k, int)
+            # the rows it does not show follow the prediction moved by the column's mean drift from it
+            row_r[k, present] = pred + np.mean(r[g] - pred[near_row])
+            row_r[k, present[near_row]] = r[g]
+        else:
+            row_r[k, present] = pred
+        placed.add(k)
+    for k, g in enumerate(groups):
+        for i in g:
+            j = present[int(np.argmin(np.abs(row_r[k, present] - r[i])))]
             out[j * cols + k] = px[i]
             seen[j * cols + k] = True
     return out, seen
 
 
+ROW_TOLERANCE = 0.3  # a dot of a partial column lies within this fraction of the row spacing of its predicted row
+
+
+def _predict_rows(col_az: np.ndarray, row_r: np.ndarray, placed: list[int], k: int, how: str = "drift") -> np.ndarray:
+    """Row radii of column ``k`` from the placed columns' (``row_r`` rows), in azimuth ``col_az``:
+    interpolated between the nearest on either side; beyond them, the nearest one's
+    (``how="nearest"``) or extrapolated along the nearest two (``"drift"``)."""
+    lo = [q for q in placed if q < k]
+    hi = [q for q in placed if q > k]
+    if lo and hi:
+        a, b = lo[-1], hi[0]
+    elif how == "nearest":
+        return row_r[lo[-1] if lo else hi[0]].copy()
+    elif len(lo) >= 2:
+        a, b = lo[-2], lo[-1]
+    elif len(hi) >= 2:
+        a, b = hi[0], hi[1]
+    else:
+        return row_r[(lo or hi)[0]].copy()
+    w = (col_az[k] - col_az[a]) / (col_az[b] - col_az[a])
+    return row_r[a] + w * (row_r[b] - row_r[a])
+
+
 def _columns(px: np.ndarray, centre: np.ndarray, layout: BoardLayout):
     """A target's dots split into its columns by azimuth (each gap wider than 3x the groups' own
     spread), in grid order, each column in grid order of its rows: ``(groups, azimuths
-    relative to their mean, image radii)``, or None."""
+    relative to their mean, image radii)``, or None.
+
+    The columns image as lines through the image of the cone's apex, which is not the rim's
+    centre (the mirror's tilt and offset, the perspective of the rim): about the rim's centre a
+    column's dots near the apex fan out by degrees.  Where the split about ``centre`` fails,
+    the point the columns meet is fitted to their dots (:func:`_column_point`) and the split is
+    made again about it."""
     cols, rows = layout.cols, layout.rows
     if len(px) < cols or len(px) > cols * rows:
         return None
     a = _wrap(azimuth_deg(px, centre) - circular_mean_deg(azimuth_deg(px, centre)))
     r = np.linalg.norm(px - centre, axis=1)
-    order = np.argsort(a)
-    gaps = np.diff(a[order])
-    if cols > 1:
-        cut = np.sort(np.argsort(gaps)[-(cols - 1) :])
-        groups = np.split(order, cut + 1)
-        spread = max(float(np.ptp(a[g])) for g in groups)
-        if gaps[cut].min() <= 3.0 * max(spread, 0.2):
+    groups = _split_columns(a, cols)
+    if groups is None:
+        near = _column_point(px, centre, a, cols)
+        if near is None:
             return None
-    else:
-        groups = [order]
+        groups = _split_columns(_wrap(azimuth_deg(px, near) - circular_mean_deg(azimuth_deg(px, near))), cols)
+        if groups is None:
+            return None
     if layout.x_dir < 0:
         groups = groups[::-1]
     if any(len(g) > rows for g in groups):
         return None
     return [g[np.argsort(layout.y_dir * r[g])] for g in groups], a, r
+
+
+def _split_columns(a: np.ndarray, cols: int) -> list[np.ndarray] | None:
+    """Indices of ``cols`` groups of azimuths ``a`` (deg, about their mean) split at the widest
+    gaps, in increasing azimuth; None unless each gap is wider than 3x the groups' own spread."""
+    order = np.argsort(a)
+    if cols == 1:
+        return [order]
+    gaps = np.diff(a[order])
+    cut = np.sort(np.argsort(gaps)[-(cols - 1) :])
+    groups = np.split(order, cut + 1)
+    spread = max(float(np.ptp(a[g])) for g in groups)
+    if gaps[cut].min() <= 3.0 * max(spread, 0.2):
+        return None
+    return groups
+
+
+def _column_point(px: np.ndarray, centre: np.ndarray, a: np.ndarray, cols: int) -> np.ndarray | None:
+    """The point where a target's columns meet: the columns first split at the widest gaps of
+    azimuth ``a`` about ``centre``; then Gauss-Newton on the point ``c`` and each column's
+    direction for the dots' distances to the lines through ``c``.  None where fewer than two
+    columns hold two dots or more, where the fit leaves fewer than 2 degrees of freedom, or
+    where ``c`` moves from ``centre`` by more than a tenth of the dots' median radius."""
+    order = np.argsort(a)
+    gaps = np.diff(a[order])
+    groups = np.split(order, np.sort(np.argsort(gaps)[-(cols - 1) :]) + 1) if cols > 1 else [order]
+    groups = [g for g in groups if len(g) >= 2]
+    n = sum(len(g) for g in groups)
+    if len(groups) < 2 or n - 2 - len(groups) < 2:
+        return None
+    c = np.asarray(centre, float).copy()
+    th = np.array([np.arctan2(*(px[g] - c).mean(0)[::-1]) for g in groups])
+    for _ in range(10):
+        rows_j, res = [], []
+        for k, g in enumerate(groups):
+            d = px[g] - c
+            s, co = np.sin(th[k]), np.cos(th[k])
+            jac = np.zeros((len(g), 2 + len(groups)))
+            jac[:, 0], jac[:, 1], jac[:, 2 + k] = -s, co, d[:, 0] * co + d[:, 1] * s
+            rows_j.append(jac)
+            res.append(d[:, 0] * s - d[:, 1] * co)
+        step = np.linalg.lstsq(np.concatenate(rows_j), -np.concatenate(res), rcond=None)[0]
+        c, th = c + step[:2], th + step[2:]
+        if np.abs(step[:2]).max() < 1e-3:
+            break
+    if not np.all(np.isfinite(c)) or np.linalg.norm(c - centre) > 0.1 * np.median(np.linalg.norm(px - centre, axis=1)):
+        return None
+    return c
 
 
 MAX_CANDIDATES = 64
@@ -608,21 +818,40 @@ def candidate_placements(
     return out
 
 
-def _darkness_probe(green: np.ndarray, disc: MirrorDisc):
-    """``probe(azimuth_deg, r0, r1)``: whether the image is darker than the wall by ``ROW_EVIDENCE``
-    of the dots' contrast anywhere along the radial segment from image radius ``r0`` to ``r1``
-    (within 2 px across it), 4 px or more inside the mirror's disc; the centre's dark body never counts."""
-    wall = disc.inside_level
+def _central_body(green: np.ndarray, disc: MirrorDisc) -> tuple[np.ndarray, np.ndarray | None]:
+    """The pixels darker than the wall by ``ROW_EVIDENCE`` of the dots' contrast 4 px or more
+    inside the disc, and the dark region holding the disc's centre among them (the sensor's own
+    reflection), or None where the centre is not dark."""
+    wall = wall_level(green, disc)
     darkest = min(disc.outside_level, float(np.percentile(green[disc.mask], 1)))
     level = wall - ROW_EVIDENCE * (wall - darkest)
     core = cv2.erode(disc.mask.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)  # not the rim's edge
     dark = (green < level) & core
-    # the sensor's own reflection: the dark region holding the disc's centre, and a margin round it
     n, labels = cv2.connectedComponents(dark.astype(np.uint8), connectivity=8)
     cu, cv_ = (int(round(c)) for c in disc.centre)
     if 0 <= cv_ < dark.shape[0] and 0 <= cu < dark.shape[1] and labels[cv_, cu] > 0:
-        body = cv2.dilate((labels == labels[cv_, cu]).astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
-        dark &= ~body
+        return dark, labels == labels[cv_, cu]
+    return dark, None
+
+
+def body_radius(green: np.ndarray, disc: MirrorDisc) -> float:
+    """The image radius (px) of the sensor's dark reflection about the disc's centre (the largest
+    distance of its pixels from the centre), 0 where the centre is not dark."""
+    _, body = _central_body(green, disc)
+    if body is None:
+        return 0.0
+    ys, xs = np.nonzero(body)
+    return float(np.max(np.hypot(xs - disc.centre[0], ys - disc.centre[1])))
+
+
+def _darkness_probe(green: np.ndarray, disc: MirrorDisc):
+    """``probe(azimuth_deg, r0, r1)``: whether the image is darker than the wall by ``ROW_EVIDENCE``
+    of the dots' contrast anywhere along the radial segment from image radius ``r0`` to ``r1``
+    (within 2 px across it), 4 px or more inside the mirror's disc; the centre's dark body never counts."""
+    dark, body = _central_body(green, disc)
+    # the sensor's own reflection: the dark region holding the disc's centre, and a margin round it
+    if body is not None:
+        dark &= ~cv2.dilate(body.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
     h, w = dark.shape
 
     def probe(az_deg: float, r0: float, r1: float) -> bool:
@@ -668,6 +897,7 @@ class ImageDetection:
     dots: np.ndarray
     spots: np.ndarray
     green: np.ndarray | None = None  # the image's green channel, for evidence where dots were not found
+    faint: np.ndarray | None = None  # (K,) which dots are faint streaks (``find_dots(with_faint=True)``)
 
 
 def detect_catadioptric(bgr: np.ndarray, name: str = "") -> ImageDetection:
@@ -676,7 +906,8 @@ def detect_catadioptric(bgr: np.ndarray, name: str = "") -> ImageDetection:
     disc = find_mirror(green)
     if disc is None:
         return ImageDetection(name, None, np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2)))
-    return ImageDetection(name, disc, find_rim(green, disc), find_dots(green, disc), find_spots(bgr, disc), green)
+    dots, faint = find_dots(green, disc, with_faint=True)
+    return ImageDetection(name, disc, find_rim(green, disc), dots, find_spots(bgr, disc), green, faint)
 
 
 def label_boards(
@@ -693,13 +924,25 @@ def label_boards(
         return out, problems
     if len(det.dots) == 0:  # each target is reported, as when some other is found
         return out, [f"{name}: not found" for name in walls]
-    az = azimuth_deg(det.dots, det.disc.centre)
-    groups = _split_by_azimuth(az, len(walls))
+    faint = np.zeros(len(det.dots), bool) if det.faint is None else det.faint
+    strong = np.flatnonzero(~faint)
+    az_all = azimuth_deg(det.dots, det.disc.centre)
+    az = az_all[strong]
+    groups = [strong[g] for g in _split_by_azimuth(az, len(walls))]
+    # each faint dot joins the group of the nearest dot in azimuth
+    extra: list[list[int]] = [[] for _ in groups]
+    for i in np.flatnonzero(faint):
+        if groups:
+            near = [np.min(np.abs(_wrap(az_all[g] - az_all[i]))) for g in groups]
+            extra[int(np.argmin(near))].append(int(i))
+    az = az_all
     names = list(walls)
     nominal = np.array([walls[k].azimuth_deg for k in names])
     means = [circular_mean_deg(az[g]) for g in groups]
     assign = [int(np.argmin(np.abs(_wrap(m - nominal)))) for m in means]
     used: dict[int, int] = {}
+    probe = None if det.green is None else _darkness_probe(det.green, det.disc)
+    body = None if det.green is None else body_radius(det.green, det.disc)
     for gi, j in enumerate(assign):
         name = names[j]
         d = abs(float(_wrap(means[gi] - nominal[j])))
@@ -707,8 +950,7 @@ def label_boards(
             problems.append(f"{len(groups[gi])} dots near azimuth {means[gi] % 360:.0f} deg match no single target")
             continue
         used[j] = gi
-        probe = None if det.green is None else _darkness_probe(det.green, det.disc)
-        got = order_grid(det.dots[groups[gi]], det.disc.centre, walls[name], float(np.mean(det.disc.axes)), probe=probe)
+        got = _place_with_faint(det, groups[gi], extra[gi], walls[name], probe, body)
         if isinstance(got, str) or got is None:
             why = got if isinstance(got, str) else f"{len(groups[gi])} dots could not be placed on the grid"
             problems.append(f"{name}: {why}; board left out")
@@ -725,6 +967,30 @@ def label_boards(
         if j not in used and not any(name in p for p in problems):
             problems.append(f"{name}: not found")
     return out, problems
+
+
+def _place_with_faint(det: ImageDetection, strong: np.ndarray, faint: list[int], layout: BoardLayout, probe, body):
+    """:func:`order_grid` of a target's dots, helped by its faint streaks: they take part in the
+    placement where the other dots alone cannot be placed, or where, with them, every other dot
+    keeps its grid position and more are placed; they are not placed themselves (a streak
+    narrower than a pixel next to the apex, or cut by the sensor's reflection, does not give its
+    dot's centre to a tenth of a pixel)."""
+    radius = float(np.mean(det.disc.axes))
+    seen = float(np.min(np.linalg.norm(det.dots - det.disc.centre, axis=1))) if len(det.dots) else np.inf
+    kw = dict(probe=probe, body_radius=body, seen_radius=seen)
+    got = order_grid(det.dots[strong], det.disc.centre, layout, radius, **kw)
+    if not faint:
+        return got
+    more = order_grid(det.dots[np.r_[strong, faint]], det.disc.centre, layout, radius, **kw)
+    if not isinstance(more, tuple):
+        return got
+    px, seen = more
+    faint_px = det.dots[faint]
+    seen = seen & ~np.any(np.all(px[:, None, :] == faint_px[None, :, :], axis=2), axis=1)
+    if not isinstance(got, tuple):
+        return (px, seen) if seen.any() else got
+    same = np.all(seen[got[1]]) and np.allclose(px[got[1]], got[0][got[1]])
+    return (px, seen) if same and seen.sum() > got[1].sum() else got
 
 
 def _spot_board(az: float, wall_az: dict[str, float], margin: float) -> str | None:
@@ -747,7 +1013,9 @@ def label_spots(
 
     Laser azimuths come from ``setup.laser_azimuth_deg`` when given; otherwise the
     spots of all images are split into ``n_lasers`` azimuth clusters and laser ``k``
-    is the ``k``-th cluster by increasing azimuth, counted from the one nearest 0 deg.
+    is the ``k``-th cluster by increasing azimuth, counted from the one nearest 0 deg; where
+    the clusters are not apart by more than their own spread (a laser never found), no spot
+    is labelled.
     A spot's board is the wall target whose dots' mean azimuth (in its image, else the
     nominal one) is nearest; within ``corner_margin`` deg of the bisector of two
     targets the spot may lie on either wall (where the corner falls depends on the
@@ -772,9 +1040,12 @@ def label_spots(
     else:
         groups = _split_by_azimuth(all_az, n)
         centres = np.array([circular_mean_deg(all_az[g]) % 360 for g in groups])
-        if len(centres) < n:
+        if len(centres) < n or not _well_separated(all_az, groups):
             for i in range(len(dets)):
-                problems[i].append(f"the spots form {len(centres)} azimuth groups for {n} lasers; none labelled")
+                problems[i].append(
+                    f"the spots do not form {n} azimuth groups apart from each other (one per laser: a laser never "
+                    "found?); none labelled (setup.json's laser_azimuth_deg would label them)"
+                )
             return spots_out, problems
         start = int(np.argmin(np.abs(_wrap(centres))))
         centres = np.roll(np.sort(centres), -int(np.searchsorted(np.sort(centres), centres[start])))
@@ -813,6 +1084,24 @@ def label_spots(
         if missing:
             problems[i].append(f"no spot for laser {', '.join(missing)}")
     return spots_out, problems
+
+
+def _well_separated(az: np.ndarray, groups: list[np.ndarray]) -> bool:
+    """Whether azimuth groups (deg) are apart by more than any group's own spread: a laser whose
+    spots were never found leaves one group fewer, and the split at the widest gaps then cuts
+    another laser's group in two, across a gap narrower than the groups' spread."""
+    if len(groups) < 2:
+        return True
+    spread = max(float(np.ptp(_wrap(az[g] - circular_mean_deg(az[g])))) for g in groups)
+    means = np.sort(np.array([circular_mean_deg(az[g]) % 360 for g in groups]))
+    lo = np.array([np.min(_wrap(az[g] - circular_mean_deg(az[g]))) for g in groups])
+    hi = np.array([np.max(_wrap(az[g] - circular_mean_deg(az[g]))) for g in groups])
+    order = np.argsort([circular_mean_deg(az[g]) % 360 for g in groups])
+    gaps = [
+        (means[(i + 1) % len(means)] + lo[order[(i + 1) % len(means)]] - means[i] - hi[order[i]]) % 360
+        for i in range(len(means))
+    ]
+    return min(gaps) > max(spread, 1.0)
 
 
 def detect_chessboard(bgr: np.ndarray, cols: int, rows: int) -> np.ndarray | None:
