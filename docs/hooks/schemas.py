@@ -3,7 +3,7 @@
 Each ``slcvjax/observations/schemas/*.schema.json`` is published as ``schemas/NAME.schema.json``
 (``formats.md`` links to them), and ``schemas.md`` lists every field of every format, generated
 from the schemas at every build so that it cannot fall behind them: its JSON path, its type, whether
-it is required, and its description (with its unit).  Reads the JSON files only (no JAX import).
+it is required, and its description (with its unit).  The formats and their order are the package's.
 """
 
 import json
@@ -11,18 +11,10 @@ from pathlib import Path
 
 from mkdocs.structure.files import File
 
+from slcvjax.observations.schemas import FORMATS
+
 SCHEMAS = Path(__file__).parent.parent.parent / "slcvjax" / "observations" / "schemas"
-ORDER = [
-    "slcv-observations/1",
-    "slcv-calibration/1",
-    "slcv-problem/1",
-    "slcv-setup/1",
-    "slcv-points/1",
-    "slcv-sweep/1",
-    "slcv-design/1",
-    "slcv-laser-design/1",
-    "common",
-]
+ORDER = [*FORMATS, "common"]  # the formats in the package's order, then the shared definitions
 
 INTRO = """# Schema reference
 

@@ -145,17 +145,11 @@ class CalibrationOptions:
         for an unknown field or a bad value."""
         if not isinstance(doc, dict):
             raise FormatError(f"{source}: (top level): expected an object of options")
-        known = {f.name for f in dataclasses.fields(cls)}
-        for k in doc:
-            if k not in known:
-                raise FormatError(f"{source}: {k}: unknown option (known: {', '.join(sorted(known))})")
+        _refuse_unknown(doc, cls, "", source)
         robust = doc.get("robust") or {}
         if not isinstance(robust, dict):
             raise FormatError(f"{source}: robust: expected an object")
-        policy_fields = {f.name for f in dataclasses.fields(RobustPolicy)}
-        for k in robust:
-            if k not in policy_fields:
-                raise FormatError(f"{source}: robust.{k}: unknown option (known: {', '.join(sorted(policy_fields))})")
+        _refuse_unknown(robust, RobustPolicy, "robust.", source)
         try:
             policy = RobustPolicy(**robust)
             rest = {k: v for k, v in doc.items() if k != "robust"}
@@ -170,6 +164,14 @@ class CalibrationOptions:
 
 DEFAULT_POLICY = RobustPolicy()
 DEFAULT_OPTIONS = CalibrationOptions()
+
+
+def _refuse_unknown(doc: dict, cls, prefix: str, source: str) -> None:
+    """:class:`FormatError` naming the first field of ``doc`` that ``cls`` does not have."""
+    known = {f.name for f in dataclasses.fields(cls)}
+    for k in doc:
+        if k not in known:
+            raise FormatError(f"{source}: {prefix}{k}: unknown option (known: {', '.join(sorted(known))})")
 
 
 def merged_options(
