@@ -23,14 +23,8 @@ from slcvjax.observations.targets import (
     chessboard_points,
 )
 
-CHARUCO = {
-    "type": "charuco",
-    "dictionary": "DICT_4X4_250",
-    "squares": [7, 5],
-    "square_mm": 20.0,
-    "marker_mm": 15.0,
-    "first_marker_id": 17,
-}
+from .test_targets import CHARUCO  # the same board as the geometry's tests
+
 APRILGRID = {"type": "aprilgrid", "tag_cols": 3, "tag_rows": 2, "tag_mm": 20.0, "spacing": 0.3, "first_marker_id": 5}
 PDFTOCAIRO = shutil.which("pdftocairo")  # poppler-utils; cairo renders edges by their exact coverage
 
