@@ -94,7 +94,7 @@ def fingerprint(res, obs) -> dict:
             [p.name, p.steps, p.code.label, p.limit, list(p.notes), repr(p.cost0), repr(p.cost), repr(p.scale)]
             for p in res.passes
         ],
-        "repairs": json.loads(json.dumps(res.repairs, default=repr)),
+        "repairs": json.loads(json.dumps([r.to_json() for r in res.repairs], default=repr)),
         "kind_sigma": {k: repr(v) for k, v in res.kind_sigma.items()},
         "undetermined": list(res.undetermined_lasers),
         "report": _json_sha(rep),

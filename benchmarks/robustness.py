@@ -182,7 +182,9 @@ def one(n_lasers: int, n_views: int, mode: str, share: float, seed: int, noise: 
     sd_p, sd_a = laser_std(res.rig, np.asarray(res.cov.glob), x_ref)
     determined = np.isfinite(sd_p) & np.isfinite(sd_a)
     rep = report(res, obs)["residuals"]
-    flagged = {key(o) for o in rep["outliers"] + rep["repairs"]}
+    flagged = {key(o) for o in rep["outliers"]} | {
+        (r.kind, r.view, r.board if r.kind == "dot" else None, r.index) for r in res.repairs
+    }
     hit = len(flagged & wrong)
     claim = np.maximum(pos / sd_p, ang / sd_a)[determined]
     return base | {
@@ -194,9 +196,9 @@ def one(n_lasers: int, n_views: int, mode: str, share: float, seed: int, noise: 
         "worst_laser_over_reported_std": float(claim.max()) if claim.size else None,
         "undetermined_lasers": np.flatnonzero(~determined).tolist(),
         "flagged": len(flagged),
-        "relabelled": sum(o["action"] == "relabelled" for o in rep["repairs"]),
-        "left_out": sum(o["action"] == "left out" for o in rep["repairs"]),
-        "boards_left_out": len({(o["view"], o["board"]) for o in rep["repairs"] if o.get("whole_board")}),
+        "relabelled": sum(r.action == "relabelled" for r in res.repairs),
+        "left_out": sum(r.action == "left out" for r in res.repairs),
+        "boards_left_out": len({(r.view, r.board) for r in res.repairs if r.whole_board}),
         "flag_precision": hit / len(flagged) if flagged else None,
         "flag_recall": hit / len(wrong) if wrong else None,
     }

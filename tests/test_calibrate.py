@@ -372,7 +372,7 @@ def test_a_laser_without_enough_spots_is_held_undetermined(scene, tmp_path):
     assert res.undetermined_lasers == (2,)
     assert not np.any(np.asarray(res.masks.glob)[res.rig.layout.elements[2]])  # held
     assert not np.any(np.asarray(res.packed.spot_laser)[: int(res.packed.counts[1])] == 2)  # its spots left out
-    assert any(r["laser"] == 2 and "undetermined" in r["reason"] for r in res.repairs)
+    assert any(r.laser == 2 and "undetermined" in r.reason for r in res.repairs)
     cal = to_calibration(res, obs)
     unc = cal.extra["uncertainty"]["lasers"]
     assert unc[2]["status"].startswith("undetermined") and unc[2]["position_std_mm"] is None

@@ -62,7 +62,7 @@ def moved_dot():
 
 
 def _left_out(res, key):
-    return [r for r in res.repairs if r["kind"] == "dot" and (r["view"], r["board"], r["index"]) == key]
+    return [r for r in res.repairs if r.kind == "dot" and (r.view, r.board, r.index) == key]
 
 
 def test_the_outlier_threshold_is_the_policys(moved_dot):

@@ -167,7 +167,7 @@ def test_a_row_shifted_grid_does_not_fit_the_box(tmp_path, capsys):
     shifted = read_observations(path)
 
     free = calibrate(shifted)
-    assert not [r for r in free.repairs if r.get("board") == board and r["view"] == obs.views[view].name]
+    assert not [r for r in free.repairs if r.board == board and r.view == obs.views[view].name]
 
     assert main(["calibrate", str(path), "--rigid", "--out", str(tmp_path / "cal.json")]) == 0
     assert "1 board pose(s) left out" in capsys.readouterr().out
@@ -191,6 +191,7 @@ def test_the_box_judges_again_the_spots_the_free_solve_relabelled(small):
     import dataclasses
 
     from slcvjax.calibration.evaluate import per_observation
+    from slcvjax.calibration.result import Repair
     from slcvjax.calibration.rigid_pass import rigid_refine
     from slcvjax.observations.formats import SpotObs
 
@@ -215,11 +216,11 @@ def test_the_box_judges_again_the_spots_the_free_solve_relabelled(small):
     own = int(labels[row])
     assert own == obs.views[v].spots[j].laser
     labels[row] = (own + 1) % obs.n_lasers
-    record = {"kind": "spot", "view": obs.views[v].name, "index": j, "board": obs.views[v].spots[j].board,
-              "action": "relabelled", "laser": own, "new_laser": int(labels[row])}  # fmt: skip
+    record = Repair("spot", obs.views[v].name, j, obs.views[v].spots[j].board, "relabelled", "handed by the test",
+                    laser=own, new_laser=int(labels[row]))  # fmt: skip
     n_d = int(free.packed.counts[0])
     handed = dataclasses.replace(
-        free, packed=free.packed.select(np.ones(n_d, bool), np.ones(n_s, bool), labels), repairs=[*free.repairs, record]
+        free, packed=free.packed.select(np.ones(n_d, bool), np.ones(n_s, bool), labels), repairs=(*free.repairs, record)
     )
     res = rigid_refine(handed, wrong, list(obs.extra["rigid_boards"]))
     restored = {(r["view"], r["index"]) for r in res.box["spots_restored"]}
@@ -228,11 +229,11 @@ def test_the_box_judges_again_the_spots_the_free_solve_relabelled(small):
     names = [w.name for w in obs.views]
     for name, k in restored:
         assert (name, k) == (obs.views[v].name, j) or any(
-            r["kind"] == "spot" and (r["view"], r["index"]) == (name, k) for r in free.repairs
+            r.kind == "spot" and (r.view, r.index) == (name, k) for r in free.repairs
         )
         assert (names.index(name), k) != (v_bad, 0)
     assert f"{len(restored)} spot(s) back with their own labels" in res.passes[-1].name and res.passes[-1].converged
-    assert not [r for r in res.repairs if r["kind"] == "spot" and (r["view"], r["index"]) == (obs.views[v].name, j)]
+    assert not [r for r in res.repairs if r.kind == "spot" and (r.view, r.index) == (obs.views[v].name, j)]
     used_labels = np.asarray(res.packed.spot_laser)[: int(res.packed.counts[1])].tolist()
     got = dict(zip(res.packed.spot_src, used_labels, strict=True))
     assert got[(v, j)] == own

@@ -67,12 +67,12 @@ def test_wrong_spot_labels_are_repaired_and_listed(noisy, clean_result):
     n_spots = sum(len(v.spots) for v in bad.views)
     wrong = _relabel(bad, max(2, round(0.1 * n_spots)), SCENE["n_lasers"], seed=5)
     res = calibrate(bad)
-    fixed = {(o["view"], o["index"]): o for o in res.repairs if o["kind"] == "spot"}
+    fixed = {(o.view, o.index): o for o in res.repairs if o.kind == "spot"}
     # every wrong label found and given back its true laser, no good spot touched
     assert set(fixed) == set(wrong)
     for k, true_laser in wrong.items():
-        assert fixed[k]["action"] == "relabelled" and fixed[k]["new_laser"] == true_laser
-        assert fixed[k]["residual_px"] > 5 * fixed[k]["new_residual_px"]
+        assert fixed[k].action == "relabelled" and fixed[k].new_laser == true_laser
+        assert fixed[k].residual_px > 5 * fixed[k].new_residual_px
     # the lasers come out as from the clean labels (the same spots, the same solution)
     x_ref = cramer_rao(truth, obs, 0.3)["x_ref"]
     pos, ang = laser_errors(res.rig, truth.rig, x_ref)
@@ -87,7 +87,7 @@ def test_wrong_spot_labels_are_repaired_and_listed(noisy, clean_result):
 
 @pytest.mark.slow
 def test_clean_observations_are_not_repaired(clean_result):
-    assert clean_result.repairs == []
+    assert clean_result.repairs == ()
 
 
 @pytest.mark.slow
@@ -105,9 +105,9 @@ def test_gross_spot_and_dot_outliers_are_left_out(noisy, clean_result):
         px[j] += np.asarray(shift)
         moved.add(("dot", bad.views[v].name, b, j))
     res = calibrate(bad)
-    out = {(o["kind"], o["view"], o["board"] if o["kind"] == "dot" else None, o["index"]) for o in res.repairs}
+    out = {(o.kind, o.view, o.board if o.kind == "dot" else None, o.index) for o in res.repairs}
     assert out == moved
-    assert all(o["action"] == "left out" for o in res.repairs)
+    assert all(o.action == "left out" for o in res.repairs)
     x_ref = cramer_rao(truth, obs, 0.3)["x_ref"]
     pos, ang = laser_errors(res.rig, truth.rig, x_ref)
     pos0, ang0 = laser_errors(clean_result.rig, truth.rig, x_ref)
@@ -169,7 +169,7 @@ def test_a_laser_whose_spots_all_belong_to_another_is_held_undetermined(noisy):
     (k,) = kept
     both = sum(t in (2, 3) for t in true_laser.values())
     kept_n = sum(t == k for t in true_laser.values())
-    assert sum(r["laser"] == 3 and r["action"] == "left out" for r in res.repairs) >= both - kept_n - 1
+    assert sum(r.laser == 3 and r.action == "left out" for r in res.repairs) >= both - kept_n - 1
     d3, dk = np.asarray(res.rig.lasers.directions[3]), np.asarray(truth.rig.lasers.directions[k])
     std_deg = report(res, obs)["uncertainty"]["lasers"][3]["direction_std_deg"]
     assert np.degrees(np.arccos(min(1.0, abs(float(d3 @ dk))))) < 4.0 * std_deg
@@ -217,9 +217,9 @@ def test_a_dot_labelled_as_an_unseen_grid_position_is_given_its_own(noisy):
             continue
         break
     res = calibrate(bad)
-    moved = [o for o in res.repairs if o["kind"] == "dot" and o["action"] == "relabelled"]
-    assert [(o["view"], o["board"], o["index"], o["new_index"]) for o in moved] == [(view.name, b, int(k), int(j))]
+    moved = [o for o in res.repairs if o.kind == "dot" and o.action == "relabelled"]
+    assert [(o.view, o.board, o.index, o.new_index) for o in moved] == [(view.name, b, int(k), int(j))]
     # its own position is off the mirror there (not seen) or far from its pixel
-    assert moved[0]["new_residual_px"] < 1.0
-    assert moved[0]["residual_px"] is None or moved[0]["residual_px"] > 1.0
+    assert moved[0].new_residual_px < 1.0
+    assert moved[0].residual_px is None or moved[0].residual_px > 1.0
     assert len(res.repairs) == 1

@@ -5,7 +5,7 @@ Spots that lie on another laser's line are relabelled (from the consensus fit of
 dots and spots beyond ``outlier_sigmas`` sigmas of their kind (and ``min_outlier_px``) are
 found under the redescending Cauchy loss and left out; what fits again once they are out comes
 back (a dot on another grid position, a spot on exactly one other laser's line).  Each change is a
-record in the trial's ``repairs`` (kind, view, board, index, action, residuals, reason).
+:class:`slcvjax.calibration.result.Repair` in the trial's ``repairs``.
 """
 
 import dataclasses
@@ -16,24 +16,26 @@ from ..observations.formats import Observations
 from ..observations.problem import KIND_NAMES, Kind, Packed
 from .covariance import kind_sigmas, sigmas_of
 from .evaluate import per_observation, probe_at
+from .result import AT_THE_FINAL_GEOMETRY, Repair
 from .trial import Trial
 
 
 def _dot_source(tr: "Trial", i: int, pk: Packed) -> dict:
-    """Dot row ``i`` of ``pk`` as the report names it."""
+    """Dot row ``i`` of ``pk`` as a :class:`Repair` names it (its ``kind``, ``view``, ``index``
+    and ``board``)."""
     if not pk.dot_src:
-        return {"kind": "dot", "view": None, "index": -1, "board": ""}
+        return dict(kind="dot", view=None, index=-1, board="")
     v, b, j = pk.dot_src[i]
-    return {"kind": "dot", "view": tr.obs.views[v].name, "index": j, "board": b}
+    return dict(kind="dot", view=tr.obs.views[v].name, index=j, board=b)
 
 
 def _spot_source(tr: "Trial", i: int, pk: Packed | None = None) -> dict:
-    """Spot row ``i`` of ``pk`` (the trial's problem by default) as the report names it."""
+    """Spot row ``i`` of ``pk`` (the trial's problem by default) as a :class:`Repair` names it."""
     pk = tr.pk if pk is None else pk
     if not pk.spot_src:
-        return {"kind": "spot", "view": None, "index": -1, "board": None}
+        return dict(kind="spot", view=None, index=-1, board=None)
     v, j = pk.spot_src[i]
-    return {"kind": "spot", "view": tr.obs.views[v].name, "index": j, "board": tr.obs.views[v].spots[j].board}
+    return dict(kind="spot", view=tr.obs.views[v].name, index=j, board=tr.obs.views[v].spots[j].board)
 
 
 def relabel_spots(tr: "Trial", fit) -> None:
@@ -46,19 +48,24 @@ def relabel_spots(tr: "Trial", fit) -> None:
     for i in changed:
         new = int(fit.labels[i])
         r_own = fit.residual[i, own[i]]
-        item = _spot_source(tr, i) | {
-            "action": "relabelled" if new >= 0 else "left out",
-            "laser": int(own[i]),
-            "residual_px": float(r_own) if np.isfinite(r_own) else None,
-        }
         if new >= 0:
-            item |= {"new_laser": new, "new_residual_px": float(fit.residual[i, new])}
-            item["reason"] = f"lies on laser {new}'s line, not on its own (threshold {fit.threshold:.3g} px)"
+            reason = f"lies on laser {new}'s line, not on its own (threshold {fit.threshold:.3g} px)"
         elif fit.undetermined[own[i]]:
-            item["reason"] = f"laser {own[i]} is undetermined: its spots cannot fix a line"
+            reason = f"laser {own[i]} is undetermined: its spots cannot fix a line"
         else:
-            item["reason"] = f"lies on no laser's line, or on more than one (threshold {fit.threshold:.3g} px)"
-        tr.repairs.append(item)
+            reason = f"lies on no laser's line, or on more than one (threshold {fit.threshold:.3g} px)"
+        tr.repairs.append(
+            Repair(
+                **_spot_source(tr, i),
+                action="relabelled" if new >= 0 else "left out",
+                reason=reason,
+                residual_px=float(r_own) if np.isfinite(r_own) else None,
+                laser=int(own[i]),
+                new_laser=new if new >= 0 else None,
+                new_residual_px=float(fit.residual[i, new]) if new >= 0 else None,
+                stage="lines",
+            )
+        )
     n_d, keep = int(tr.pk.counts[Kind.DOT]), fit.labels >= 0
     every = tr.pk.select(np.ones(n_d, bool), np.ones(keep.size, bool), np.where(keep, fit.labels, own))
     tr.set_aside = (every, np.concatenate([np.zeros(n_d, bool), ~keep]))
@@ -126,10 +133,9 @@ def leave_out(tr: "Trial", starts, rerun, rounds: int = 3, find: bool = True) ->
     n_d = int(full.counts[Kind.DOT])
     for i in np.flatnonzero(out & ~aside):  # those set aside and still out have their record
         if i < n_d:
-            item = _dot_source(tr, i, full)
+            src, laser = _dot_source(tr, i, full), None
         else:
-            src = _spot_source(tr, i - n_d, full)
-            item = src | {"laser": int(np.asarray(full.spot_laser)[i - n_d])}
+            src, laser = _spot_source(tr, i - n_d, full), int(np.asarray(full.spot_laser)[i - n_d])
         k = int(kind[i])
         if whole[i]:
             why = "its board's pose in this view is not determined: "
@@ -140,10 +146,14 @@ def leave_out(tr: "Trial", starts, rerun, rounds: int = 3, find: bool = True) ->
             why = f"residual {norm[i]:.3g} px beyond {limit[k]:.3g} px ({tr.policy.outlier_sigmas:g} sigma of the "
             why += f"{KIND_NAMES[k]}s, at least {tr.policy.min_outlier_px:g} px)"
         tr.repairs.append(
-            item
-            | {"action": "left out", "residual_px": float(norm[i]) if valid[i] and not whole[i] else None}
-            | {"reason": why}
-            | ({"whole_board": True} if whole[i] else {})
+            Repair(
+                **src,
+                action="left out",
+                reason=why,
+                residual_px=float(norm[i]) if valid[i] and not whole[i] else None,
+                laser=laser,
+                whole_board=bool(whole[i]),
+            )
         )
 
 
@@ -236,30 +246,38 @@ def _bring_back(tr: "Trial", full: Packed, aside, out, whole, rerun, scale: floa
     norm_new = per_observation(tr.params, full)[0]
     for i, k in moved.items():
         tr.repairs.append(
-            _dot_source(tr, i, old_full)
-            | {"action": "relabelled", "new_index": k, "residual_px": float(norm[i]) if valid[i] else None}
-            | {"new_residual_px": float(norm_new[i])}
-            | {"reason": f"lies on grid position {k} of its board (not seen otherwise), not on its own"}
+            Repair(
+                **_dot_source(tr, i, old_full),
+                action="relabelled",
+                reason=f"lies on grid position {k} of its board (not seen otherwise), not on its own",
+                residual_px=float(norm[i]) if valid[i] else None,
+                new_index=k,
+                new_residual_px=float(norm_new[i]),
+            )
         )
     for i, k in lasers.items():
         # its residual under its own label: now, else where the lines set it aside
-        before = [r.get("residual_px") for r in take_spot_records(tr, full, [i])]
+        before = [r.residual_px for r in take_spot_records(tr, full, [i])]
         tr.repairs.append(
-            _spot_source(tr, i - n_d, full)
-            | {"action": "relabelled", "laser": int(old_labels[i - n_d])}
-            | {"residual_px": float(norm[i]) if valid[i] else (before[0] if before else None)}
-            | {"new_laser": k, "new_residual_px": float(norm_new[i])}
-            | {"reason": f"lies on laser {k}'s line at the final geometry, not on its own"}
+            Repair(
+                **_spot_source(tr, i - n_d, full),
+                action="relabelled",
+                reason=f"lies on laser {k}'s line {AT_THE_FINAL_GEOMETRY}, not on its own",
+                residual_px=float(norm[i]) if valid[i] else (before[0] if before else None),
+                laser=int(old_labels[i - n_d]),
+                new_laser=k,
+                new_residual_px=float(norm_new[i]),
+            )
         )
     return full, out
 
 
-def take_spot_records(tr: "Trial", full: Packed, rows) -> list[dict]:
+def take_spot_records(tr: "Trial", full: Packed, rows) -> list[Repair]:
     """Remove from ``tr.repairs`` the records of the spots in ``rows`` of ``full`` (counted
     after the dots) and return them."""
     n_d = int(full.counts[Kind.DOT])
     keys = {(src["view"], src["index"]) for src in (_spot_source(tr, i - n_d, full) for i in rows)}
-    mine = [r["kind"] == "spot" and (r["view"], r["index"]) in keys for r in tr.repairs]
+    mine = [r.kind == "spot" and (r.view, r.index) in keys for r in tr.repairs]
     taken = [r for r, m in zip(tr.repairs, mine, strict=True) if m]
     tr.repairs = [r for r, m in zip(tr.repairs, mine, strict=True) if not m]
     return taken

@@ -118,7 +118,7 @@ def report(result: CalibrationResult, obs: Observations | None = None) -> dict:
         "per_direct_view_rms_px": per_direct,
         "invalid": int(np.sum(~ok)),
         "outliers": outliers,
-        "repairs": result.repairs,
+        "repairs": [r.to_json() for r in result.repairs],
         "rim_outliers": int(np.sum(ok & (kind == Kind.RIM) & (norm > n_sig * (result.kind_sigma.get("rim") or sigma)))),
         "loss": {"kind": result.loss, "scale_px": result.scale},
     }

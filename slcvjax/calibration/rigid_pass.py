@@ -22,7 +22,7 @@ from .lm import Outcome
 from .options import RobustPolicy
 from .params import Params, pad_masks, pad_problem, unpad_params
 from .passes import RTOL_FINAL
-from .result import CalibrationResult, JointPass
+from .result import CalibrationResult, JointPass, Repair
 from .rigid import (
     board_pose_covariances,
     board_poses_of,
@@ -149,7 +149,7 @@ def rigid_refine(res: CalibrationResult, obs: Observations, group: list[str]) ->
             reexamined = True
             restored, cur_new = _restore_spots(params, model, cur, obs, left, policy)
             if restored:
-                repairs = [r for r in repairs if not (r["kind"] == "spot" and (r["view"], r["index"]) in restored)]
+                repairs = [r for r in repairs if not (r.kind == "spot" and (r.view, r.index) in restored)]
                 restored_names += sorted(restored)
                 cur = cur_new
                 continue
@@ -159,17 +159,18 @@ def rigid_refine(res: CalibrationResult, obs: Observations, group: list[str]) ->
         for k in new:
             v, b = pk.pose_keys[k]
             repairs.append(
-                {
-                    "kind": "board",
-                    "view": obs.views[v].name,
-                    "board": b,
-                    "index": -1,
-                    "action": "left out",
-                    "residual_px": medians[k],
-                    "reason": f"does not fit the rigid box: its dots' median residual {medians[k]:.3g} px "
+                Repair(
+                    kind="board",
+                    view=obs.views[v].name,
+                    index=-1,
+                    board=b,
+                    action="left out",
+                    reason=f"does not fit the rigid box: its dots' median residual {medians[k]:.3g} px "
                     f"beyond {limit:.3g} px ({policy.misfit_sigmas:g} sigma, at least {policy.misfit_min_px:g} px)",
-                    "whole_board": True,
-                }
+                    residual_px=medians[k],
+                    whole_board=True,
+                    stage="box",
+                )
             )
         left += new
         n_s = int(cur.counts[Kind.SPOT])
@@ -213,7 +214,7 @@ def rigid_refine(res: CalibrationResult, obs: Observations, group: list[str]) ->
         packed=cur,
         cov=cov_out,
         passes=passes,
-        repairs=repairs,
+        repairs=tuple(repairs),
         timings=timings,
         kind_sigma=dict(zip(KIND_NAMES, noise.sigma.tolist(), strict=True)),
         box=box,

@@ -174,7 +174,7 @@ class _Lockstep:
             tr.passes,
             {"staged_s": tr.t_staged, "total_s": time.perf_counter() - tr.t0},
             dict(zip(KIND_NAMES, noise.sigma.tolist(), strict=True)),
-            tr.repairs,
+            tuple(tr.repairs),
             undetermined_lasers=tr.undetermined,
             observations=tr.obs,
             options=self.options,

@@ -48,7 +48,7 @@ from .covariance import Covariance, covariance_and_noise
 from .lm import Outcome
 from .options import CalibrationOptions
 from .params import Masks, Params
-from .result import CalibrationResult, JointPass
+from .result import CalibrationResult, JointPass, Repair
 from .staged import Staged
 
 PROBLEM_FORMAT = "slcv-problem/1"
@@ -165,6 +165,13 @@ def _staged(stages: dict, source: str) -> Staged:
     ]
     rig = cal.rig
     return Staged(rig.camera, rig.mirror, rig.lasers, [], {}, reports, None, cal.undetermined_lasers)
+
+
+def _repairs(doc, source: str) -> tuple[Repair, ...]:
+    """The file's ``residuals.repairs`` as records (an error names the file, the field and the index)."""
+    if not isinstance(doc, list):
+        raise FormatError(f"{source}: residuals.repairs: expected a list, got {type(doc).__name__}")
+    return tuple(Repair.from_json(r, f"{source}: residuals.repairs[{i}]") for i, r in enumerate(doc))
 
 
 def _box(doc: dict) -> dict:
@@ -287,7 +294,7 @@ def load_result(path: str | os.PathLike) -> CalibrationResult:
         passes,
         dict(joint.get("timings_s") or {}),
         kind_sigma,
-        list(_get(doc, "residuals", "", source).get("repairs", [])),
+        _repairs(_get(doc, "residuals", "", source).get("repairs", []), source),
         box,
         cal.undetermined_lasers,
         obs,

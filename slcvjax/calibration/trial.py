@@ -13,7 +13,7 @@ from ..observations.problem import Kind, Layout, Packed, pack, stack_poses
 from .base import CalibrationError
 from .options import CalibrationOptions
 from .params import Params, make_masks
-from .result import JointPass
+from .result import JointPass, Repair
 from .staged import staged
 
 
@@ -66,7 +66,7 @@ class Trial:
             self.pk = self.pk.select(np.ones(n_d, bool), ~held)
         self.use(self.pk)
         self.passes: list[JointPass] = []
-        self.repairs: list[dict] = []
+        self.repairs: list[Repair] = []
         self.scale = 1.0
         # the problem before spots were set aside by their lines (:func:`relabel_spots`), and
         # which of its rows were: the outlier check looks at them again on the final geometry

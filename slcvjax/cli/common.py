@@ -5,6 +5,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..calibration.result import Repair
 from ..observations.formats import FormatError, write_observations
 
 log = logging.getLogger(__name__)
@@ -58,15 +59,15 @@ def print_report(cal, name: str = "") -> None:
 
     listed = "; ".join(_outlier(o) for o in out[:10]) + (" ..." if len(out) > 10 else "")
     log.info(f"outliers   {len(out)}" + (f": {listed}" if out else ""))
-    fixed = res.get("repairs", [])
+    fixed = [Repair.from_json(o, f"residuals.repairs[{i}]") for i, o in enumerate(res.get("repairs", []))]
 
-    def _repair(o):
-        what = " ".join(str(x) for x in (o["kind"], o["view"], o["board"]) if x) + (
-            f" #{o['index']}" if o["index"] >= 0 else ""
-        )
-        if o["action"] == "relabelled":
-            return f"{what} laser {o['laser']} -> {o['new_laser']}"
-        return f"{what} left out ({fmt(o['residual_px'], 1)} px)"
+    def _repair(o: Repair):
+        what = " ".join(str(x) for x in (o.kind, o.view, o.board) if x) + (f" #{o.index}" if o.index >= 0 else "")
+        if o.action == "relabelled" and o.new_index is not None:  # a dot given another grid position
+            return f"{what} -> #{o.new_index}"
+        if o.action == "relabelled":
+            return f"{what} laser {o.laser} -> {o.new_laser}"
+        return f"{what} left out ({fmt(o.residual_px, 1)} px)"
 
     if fixed:
         listed = "; ".join(_repair(o) for o in fixed[:10]) + (" ..." if len(fixed) > 10 else "")

@@ -39,7 +39,7 @@ import numpy as np
 from ..calibration.bound import cramer_rao
 from ..calibration.linearise import residual_rows
 from ..calibration.params import Params, pad_params
-from ..calibration.result import CalibrationResult
+from ..calibration.result import CalibrationResult, Repair
 from ..calibration.stored import load_result
 from ..geometry.camera import Camera
 from ..geometry.mirror import Mirror, back_project
@@ -465,6 +465,28 @@ code{background:#f4f4f4;padding:0 3px} .row{display:flex;flex-wrap:wrap;gap:1.2e
 """
 
 
+# the repairs' columns, in order; the other fields are shown where a repair has them
+_REPAIR_COLUMNS = (
+    "kind", "view", "board", "index", "laser", "action", "residual_px", "new_laser", "new_index",
+    "new_residual_px", "reason", "whole_board",
+)  # fmt: skip
+_REPAIR_ALWAYS = ("kind", "view", "board", "index", "action", "residual_px", "reason")
+
+
+def _repair_table(repairs: tuple[Repair, ...], empty: str) -> str:
+    """The repairs as a table: a row per :class:`Repair`, a column per field that any of them has
+    (``whole_board``: where it holds)."""
+    if not repairs:
+        return f"<p class='note'>{empty}</p>"
+
+    def cell(r: Repair, name: str):
+        value = getattr(r, name)
+        return None if value is False else value
+
+    cols = [c for c in _REPAIR_COLUMNS if c in _REPAIR_ALWAYS or any(cell(r, c) is not None for r in repairs)]
+    return _table(list(cols), [[cell(r, c) for c in cols] for r in repairs])
+
+
 def _section(sid: str, title: str, body: str) -> str:
     return f'<section id="{sid}"><h2>{html.escape(title)}</h2>\n{body}\n</section>\n'
 
@@ -517,7 +539,7 @@ def report_html(
         if las.get("status") and i not in held:
             lines.append(f"Laser {i}: {html.escape(las['status'])}")
     cls = "ok" if converged and not held and len(lines) == 1 else ("bad" if not converged else "warn")
-    n_out, n_rep = len(res.get("outliers", [])), len(res.get("repairs", []))
+    n_out, n_rep = len(res.get("outliers", [])), len(result.repairs)
     summary = (
         f"RMS reprojection error {_fmt(res['rms_px'])} px over the valid observations; noise sigma "
         f"{_fmt(res['sigma_px'])} px ({res['dof']} degrees of freedom); {len(obs.views)} catadioptric and "
@@ -709,7 +731,7 @@ def report_html(
 
     body = (
         "<h3>Repairs</h3><p class='note'>Observations relabelled or left out before the final pass.</p>"
-        + records(res.get("repairs", []), "No observation was repaired or left out.")
+        + _repair_table(result.repairs, "No observation was repaired or left out.")
         + "<h3>Outliers</h3><p class='note'>Dots and spots kept in the final pass whose residual lies beyond "
         f"{_fmt(result.options.robust.outlier_sigmas)} sigmas of their kind (orange rings on the images).</p>"
         + records(res.get("outliers", []), "No outlier.")
