@@ -1,6 +1,7 @@
 """Robust calibration: wrong spot labels repaired, gross outliers left out, undetermined results said so."""
 
 import copy
+import dataclasses
 import json
 
 import numpy as np
@@ -179,11 +180,10 @@ def test_a_laser_whose_spots_all_belong_to_another_is_held_undetermined(noisy):
 def test_negative_variances_are_undetermined_not_zero(clean_result, noisy):
     np.testing.assert_array_equal(std_of_variance([4.0, 0.0, -1e-14]), [2.0, 0.0, 0.0])
     assert np.isnan(std_of_variance([4.0, -0.5])[1])
-    res = copy.copy(clean_result)
-    cov = np.array(res.cov.glob)
-    sl = res.rig.layout.elements[1]
+    cov = np.array(clean_result.cov.glob)
+    sl = clean_result.rig.layout.elements[1]
     cov[sl, sl] = -np.abs(cov[sl, sl])
-    res.cov = res.cov._replace(glob=cov)
+    res = dataclasses.replace(clean_result, cov=clean_result.cov._replace(glob=cov))
     pos, ang = laser_std(res.rig, cov, np.zeros((res.rig.lasers.n, 3)))
     assert np.isnan(pos[1]) and np.isnan(ang[1]) and np.all(np.isfinite(np.delete(pos, 1)))
     doc = report(res, noisy[0])["uncertainty"]["lasers"]

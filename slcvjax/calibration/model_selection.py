@@ -105,8 +105,12 @@ def auto_kind(obs: Observations, options: CalibrationOptions) -> "CalibrationRes
             f"not determined: the held-out views do not tell {', '.join(tied)} apart "
             f"(within two standard errors, {margin:.3f} px)"
         )
-    res.staged.reports.insert(0, StageReport("mirror_kind", scores[best][1], "px (held out)", notes))
-    return res
+    return _reported_first(res, StageReport("mirror_kind", scores[best][1], "px (held out)", notes))
+
+
+def _reported_first(res: "CalibrationResult", rep: StageReport) -> "CalibrationResult":
+    """``res`` with ``rep`` first among its staged start's reports (a choice made before it)."""
+    return dataclasses.replace(res, staged=dataclasses.replace(res.staged, reports=[rep, *res.staged.reports]))
 
 
 def shape_unknowns(shape: dict, freeze) -> tuple[set, set]:
@@ -176,7 +180,7 @@ def through_the_mirror(obs: Observations, options: CalibrationOptions) -> "Calib
     best, held = None, options.replace(freeze=freeze)
     for cam, mir, rep in starts:
         res = calibrate_lockstep([obs], cam, held, solve_loop, mirror=mir, estimate=estimate)[0]
-        res.staged.reports.insert(0, rep)
+        res = _reported_first(res, rep)
         if best is None or res.passes[-1].cost < best.passes[-1].cost:
             best = res
     if "radius" not in shape:  # the rim bounds nothing: where the estimate closed the conic, inside its widest circle
@@ -184,7 +188,7 @@ def through_the_mirror(obs: Observations, options: CalibrationOptions) -> "Calib
         k1, c = 1.0 + float(mir.conic), float(mir.curvature)
         if k1 > 0 and k1 * (c * float(mir.radius)) ** 2 >= 1.0:
             rim = jnp.asarray(0.999 / (c * np.sqrt(k1)))
-            best.params = eqx.tree_at(lambda p: p.rig.mirror.radius, best.params, rim)
+            best = dataclasses.replace(best, params=eqx.tree_at(lambda p: p.rig.mirror.radius, best.params, rim))
     return best
 
 
@@ -225,5 +229,4 @@ def auto_projection(obs: Observations, options: CalibrationOptions) -> "Calibrat
                 f"kept below {options.projection_test_level:g})"
             )
     res = fits[best]
-    res.staged.reports.insert(0, StageReport("camera_projection", float(res.cov.sigma), "px (sigma)", notes))
-    return res
+    return _reported_first(res, StageReport("camera_projection", float(res.cov.sigma), "px (sigma)", notes))

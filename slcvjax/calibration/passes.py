@@ -115,10 +115,10 @@ def solve_job(tr: "Trial", params: Params, spec: PassSpec, masks: Masks | None =
 TWIN_SOLVE = PassSpec("other starts", rtol=RTOL_TWIN, rig_held=True)
 
 
-def record_pass(tr: "Trial", name: str, res, limit: int | None, note: str = "") -> None:
-    """Add the pass ``name``'s solve ``res`` to the trial's passes (``limit``: the pass's own step limit;
-    ``note``: what followed it)."""
-    tr.passes.append(
+def record_pass(tr: "Trial", name: str, res, limit: int | None, note: str = "") -> "Trial":
+    """The trial with the pass ``name``'s solve ``res`` added to its passes (``limit``: the pass's
+    own step limit; ``note``: what followed it)."""
+    return tr.with_pass(
         JointPass(
             name,
             int(res.steps),
@@ -127,6 +127,6 @@ def record_pass(tr: "Trial", name: str, res, limit: int | None, note: str = "") 
             float(tr.scale),
             Outcome(int(res.result)),
             limit,
-            [note] if note else [],
+            (note,) if note else (),
         )
     )

@@ -38,13 +38,14 @@ def _spot_source(tr: "Trial", i: int, pk: Packed | None = None) -> dict:
     return dict(kind="spot", view=tr.obs.views[v].name, index=j, board=tr.obs.views[v].spots[j].board)
 
 
-def relabel_spots(tr: "Trial", fit) -> None:
-    """Give the trial's spots the labels of :func:`slcvjax.calibration.laser_fit.fit_lasers` (another laser, or
-    left out), recording each change in ``tr.repairs``."""
+def relabel_spots(tr: "Trial", fit) -> "Trial":
+    """The trial with its spots given the labels of :func:`slcvjax.calibration.laser_fit.fit_lasers`
+    (another laser, or left out), each change recorded in its ``repairs``."""
     own = np.asarray(tr.pk.spot_laser)[: fit.labels.shape[0]]
     changed = np.flatnonzero(fit.labels != own)
     if not changed.size:
-        return
+        return tr
+    records = []
     for i in changed:
         new = int(fit.labels[i])
         r_own = fit.residual[i, own[i]]
@@ -54,7 +55,7 @@ def relabel_spots(tr: "Trial", fit) -> None:
             reason = f"laser {own[i]} is undetermined: its spots cannot fix a line"
         else:
             reason = f"lies on no laser's line, or on more than one (threshold {fit.threshold:.3g} px)"
-        tr.repairs.append(
+        records.append(
             Repair(
                 **_spot_source(tr, i),
                 action="relabelled" if new >= 0 else "left out",
@@ -68,8 +69,9 @@ def relabel_spots(tr: "Trial", fit) -> None:
         )
     n_d, keep = int(tr.pk.counts[Kind.DOT]), fit.labels >= 0
     every = tr.pk.select(np.ones(n_d, bool), np.ones(keep.size, bool), np.where(keep, fit.labels, own))
-    tr.set_aside = (every, np.concatenate([np.zeros(n_d, bool), ~keep]))
-    tr.use(every.select(np.ones(n_d, bool), keep))
+    aside = (every, np.concatenate([np.zeros(n_d, bool), ~keep]))
+    tr = dataclasses.replace(tr.with_repairs(*records), set_aside=aside)
+    return tr.using(every.select(np.ones(n_d, bool), keep))
 
 
 def _outliers(tr: "Trial", pk: Packed) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -96,18 +98,19 @@ def _outliers(tr: "Trial", pk: Packed) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return bad, norm, kind, limit, ok
 
 
-def leave_out(tr: "Trial", starts, rerun, rounds: int = 3, find: bool = True) -> None:
-    """Leave out the trial's gross outliers: the dots and spots beyond ``policy.outlier_sigmas``
+def leave_out(tr: "Trial", starts, rerun, rounds: int = 3, find: bool = True) -> "Trial":
+    """The trial with its gross outliers left out: the dots and spots beyond ``policy.outlier_sigmas``
     sigmas (:func:`_outliers`).  Where there are any, the final pass runs first with the
-    redescending Cauchy loss (``rerun("cauchy", scale)``, first at ``policy.cauchy_widen`` times the
+    redescending Cauchy loss (``rerun(tr, "cauchy", scale)``, first at ``policy.cauchy_widen`` times the
     loss scale, then at it), under which a gross outlier no longer drags
     its board's pose, so that the outliers found then are the wrong observations, not the good
     ones of a dragged board (and every board tries its other starts under that loss,
-    ``starts()``: a board whose own dots are a third wrong is found again from its neighbours);
+    ``starts(tr)``: a board whose own dots are a third wrong is found again from its neighbours);
     those are left out and the final pass runs again with the
-    calibration's loss (``rerun(None, scale)``); observations left out that fit the new solution come
-    back, until the set left out stays the same (at most ``rounds`` times).  A board left with
-    fewer than ``policy.min_board_dots`` dots is left out whole (its pose is not determined).
+    calibration's loss (``rerun(tr, None, scale)``; each returns the trial after it); observations
+    left out that fit the new solution come back, until the set left out stays the same (at most
+    ``rounds`` times).  A board left with fewer than ``policy.min_board_dots`` dots is left out
+    whole (its pose is not determined).
     Spots set aside earlier by their lines (``tr.set_aside``) are predictions at this geometry,
     not fitted residuals: those predicted near their line (:func:`predicted_fit`) come back
     and are judged with the rest (a board pose wrong when the lines were fitted made them look
@@ -119,18 +122,18 @@ def leave_out(tr: "Trial", starts, rerun, rounds: int = 3, find: bool = True) ->
     full, aside = tr.set_aside if tr.set_aside is not None else (tr.pk, none_aside)
     out = aside & ~predicted_fit(tr, full, aside)
     if not np.array_equal(out, aside):
-        use_all_but(tr, full, out)
-        rerun(None, scale)
+        tr = rerun(use_all_but(tr, full, out), None, scale)
     whole = np.zeros_like(out)
     if find and not np.array_equal(_outliers(tr, full)[0], out):  # more than what stays set aside
-        out, whole = _robust_rounds(tr, full, out, starts, rerun, scale, rounds)
-    _readmit(tr, full, aside, out)
+        tr, out, whole = _robust_rounds(tr, full, out, starts, rerun, scale, rounds)
+    tr = _readmit(tr, full, aside, out)
     if not out.any():
-        return
+        return tr
     # the residuals that left them out, for the records
     _, norm, kind, limit, valid = _outliers(tr, full)
-    full, out = _bring_back(tr, full, aside, out, whole, rerun, scale)
+    tr, full, out = _bring_back(tr, full, aside, out, whole, rerun, scale)
     n_d = int(full.counts[Kind.DOT])
+    records = []
     for i in np.flatnonzero(out & ~aside):  # those set aside and still out have their record
         if i < n_d:
             src, laser = _dot_source(tr, i, full), None
@@ -145,7 +148,7 @@ def leave_out(tr: "Trial", starts, rerun, rounds: int = 3, find: bool = True) ->
         else:
             why = f"residual {norm[i]:.3g} px beyond {limit[k]:.3g} px ({tr.policy.outlier_sigmas:g} sigma of the "
             why += f"{KIND_NAMES[k]}s, at least {tr.policy.min_outlier_px:g} px)"
-        tr.repairs.append(
+        records.append(
             Repair(
                 **src,
                 action="left out",
@@ -155,12 +158,13 @@ def leave_out(tr: "Trial", starts, rerun, rounds: int = 3, find: bool = True) ->
                 whole_board=bool(whole[i]),
             )
         )
+    return tr.with_repairs(*records)
 
 
-def use_all_but(tr: "Trial", full: Packed, out: np.ndarray) -> None:
-    """The trial solves ``full`` without the rows where ``out`` holds (dots, then spots)."""
+def use_all_but(tr: "Trial", full: Packed, out: np.ndarray) -> "Trial":
+    """The trial solving ``full`` without the rows where ``out`` holds (dots, then spots)."""
     n_d = int(full.counts[Kind.DOT])
-    tr.use(full.select(~out[:n_d], ~out[n_d:]))
+    return tr.using(full.select(~out[:n_d], ~out[n_d:]))
 
 
 def predicted_fit(tr: "Trial", full: Packed, rows: np.ndarray) -> np.ndarray:
@@ -178,14 +182,14 @@ def predicted_fit(tr: "Trial", full: Packed, rows: np.ndarray) -> np.ndarray:
 def _robust_rounds(tr: "Trial", full: Packed, out, starts, rerun, scale: float, rounds: int):
     """The outliers of ``full`` found under the Cauchy loss, left out, and the final pass run
     again on the rest until the set stays the same (see :func:`leave_out`); ``out``: the rows
-    left out so far.  Returns the rows left out and those of boards left out whole."""
+    left out so far.  Returns the trial, the rows left out and those of boards left out whole."""
     n_d = int(full.counts[Kind.DOT])
     # graduated: at a wide scale first, where the good observations of a dragged board still
     # pull (at the final scale they may already count as outliers: a local minimum)
-    rerun("cauchy", tr.policy.cauchy_widen * scale)
-    rerun("cauchy", scale)
-    starts()
-    rerun("cauchy", scale)
+    tr = rerun(tr, "cauchy", tr.policy.cauchy_widen * scale)
+    tr = rerun(tr, "cauchy", scale)
+    tr = starts(tr)
+    tr = rerun(tr, "cauchy", scale)
     ran = False  # the final pass run again with the calibration's loss on what is kept
     whole = np.zeros_like(out)
     for _ in range(rounds):
@@ -200,20 +204,21 @@ def _robust_rounds(tr: "Trial", full: Packed, out, starts, rerun, scale: float, 
         if ran and np.array_equal(bad, out):
             break
         out = bad
-        use_all_but(tr, full, out)
-        rerun(None, scale)
+        tr = rerun(use_all_but(tr, full, out), None, scale)
         ran = True
-    return out, whole
+    return tr, out, whole
 
 
-def _bring_back(tr: "Trial", full: Packed, aside, out, whole, rerun, scale: float) -> tuple[Packed, np.ndarray]:
+def _bring_back(
+    tr: "Trial", full: Packed, aside, out, whole, rerun, scale: float
+) -> tuple["Trial", Packed, np.ndarray]:
     """Observations left out that fit once the outliers are gone come back: a dot that lies on
     another grid position of its board (one not seen in that view) with that position, a spot
     that lies on exactly one other laser's line (within ``policy.consensus_px``, as the consensus
     looks for it: a left-out spot's residual is a prediction) with that laser, and a spot set
     aside by its lines that its own line now predicts (:func:`predicted_fit`).  The spots are
-    kept only if they fit once refitted.  Records the changes; returns the problem (with the
-    new labels) and the rows still left out."""
+    kept only if they fit once refitted.  Records the changes; returns the trial, the problem
+    (with the new labels) and the rows still left out."""
     n_d, n_s = int(full.counts[Kind.DOT]), int(full.counts[Kind.SPOT])
     _, norm, _, limit, valid = _outliers(tr, full)
     cand = out & ~whole
@@ -221,7 +226,7 @@ def _bring_back(tr: "Trial", full: Packed, aside, out, whole, rerun, scale: floa
     moved = _regrid(tr, full, cand, limit[0])
     lasers = {i: k for i, k in _relaser(tr, full, cand, tr.policy.consensus_px).items() if not own[i]}
     if not (moved or lasers or own.any()):
-        return full, out
+        return tr, full, out
     old_full, old_labels = full, np.asarray(full.spot_laser)[:n_s]
     labels = old_labels.copy()
     for i, k in lasers.items():
@@ -229,8 +234,7 @@ def _bring_back(tr: "Trial", full: Packed, aside, out, whole, rerun, scale: floa
     full = _with_dot_labels(full, tr.obs, moved).select(np.ones(n_d, bool), np.ones(n_s, bool), labels)
     out = out & ~own
     out[list(moved) + list(lasers)] = False
-    use_all_but(tr, full, out)
-    rerun(None, scale)
+    tr = rerun(use_all_but(tr, full, out), None, scale)
     still_bad = _outliers(tr, full)[0]
     misfit = [i for i in lasers if still_bad[i]]
     if misfit or (own & still_bad).any():  # still beyond the noise: out again, with its own label
@@ -240,12 +244,11 @@ def _bring_back(tr: "Trial", full: Packed, aside, out, whole, rerun, scale: floa
         full = full.select(np.ones(n_d, bool), np.ones(n_s, bool), labels)
         out[misfit] = True
         out |= own & still_bad
-        use_all_but(tr, full, out)
-        rerun(None, scale)
-    take_spot_records(tr, full, np.flatnonzero(own & ~out))
+        tr = rerun(use_all_but(tr, full, out), None, scale)
+    tr, _ = take_spot_records(tr, full, np.flatnonzero(own & ~out))
     norm_new = per_observation(tr.params, full)[0]
     for i, k in moved.items():
-        tr.repairs.append(
+        tr = tr.with_repairs(
             Repair(
                 **_dot_source(tr, i, old_full),
                 action="relabelled",
@@ -257,8 +260,9 @@ def _bring_back(tr: "Trial", full: Packed, aside, out, whole, rerun, scale: floa
         )
     for i, k in lasers.items():
         # its residual under its own label: now, else where the lines set it aside
-        before = [r.residual_px for r in take_spot_records(tr, full, [i])]
-        tr.repairs.append(
+        tr, taken = take_spot_records(tr, full, [i])
+        before = [r.residual_px for r in taken]
+        tr = tr.with_repairs(
             Repair(
                 **_spot_source(tr, i - n_d, full),
                 action="relabelled",
@@ -269,23 +273,23 @@ def _bring_back(tr: "Trial", full: Packed, aside, out, whole, rerun, scale: floa
                 new_residual_px=float(norm_new[i]),
             )
         )
-    return full, out
+    return tr, full, out
 
 
-def take_spot_records(tr: "Trial", full: Packed, rows) -> list[Repair]:
-    """Remove from ``tr.repairs`` the records of the spots in ``rows`` of ``full`` (counted
-    after the dots) and return them."""
+def take_spot_records(tr: "Trial", full: Packed, rows) -> tuple["Trial", list[Repair]]:
+    """The trial without the records of the spots in ``rows`` of ``full`` (counted after the
+    dots) in its ``repairs``, and those records."""
     n_d = int(full.counts[Kind.DOT])
     keys = {(src["view"], src["index"]) for src in (_spot_source(tr, i - n_d, full) for i in rows)}
     mine = [r.kind == "spot" and (r.view, r.index) in keys for r in tr.repairs]
     taken = [r for r, m in zip(tr.repairs, mine, strict=True) if m]
-    tr.repairs = [r for r, m in zip(tr.repairs, mine, strict=True) if not m]
-    return taken
+    kept = tuple(r for r, m in zip(tr.repairs, mine, strict=True) if not m)
+    return dataclasses.replace(tr, repairs=kept), taken
 
 
-def _readmit(tr: "Trial", full: Packed, aside: np.ndarray, out: np.ndarray) -> None:
-    """Drop the records of the spots set aside by their lines that are no longer left out."""
-    take_spot_records(tr, full, np.flatnonzero(aside & ~out))
+def _readmit(tr: "Trial", full: Packed, aside: np.ndarray, out: np.ndarray) -> "Trial":
+    """The trial without the records of the spots set aside by their lines that are no longer left out."""
+    return take_spot_records(tr, full, np.flatnonzero(aside & ~out))[0]
 
 
 def _probe(tr: "Trial", kind: Kind, **rows) -> tuple[np.ndarray, np.ndarray]:

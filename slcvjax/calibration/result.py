@@ -14,7 +14,7 @@ from .params import Masks, Params
 from .staged import Staged
 
 
-@dataclass
+@dataclass(frozen=True)
 class JointPass:
     """One LM pass: its name, steps, costs, loss scale, how it ended (``code``, a
     :class:`slcvjax.calibration.lm.Outcome`), the step limit the schedule gives it where that is
@@ -28,7 +28,7 @@ class JointPass:
     scale: float
     code: Outcome
     limit: int | None = None
-    notes: list[str] = field(default_factory=list)
+    notes: tuple[str, ...] = ()
 
     @property
     def converged(self) -> bool:
@@ -49,7 +49,7 @@ class JointPass:
             "steps": self.steps,
             "result": self.result,
             "outcome": self.code.label,
-            "notes": self.notes,
+            "notes": list(self.notes),
             "cost0": self.cost0,
             "cost": self.cost,
             "scale": self.scale,
@@ -218,9 +218,10 @@ class Repair:
         )
 
 
-@dataclass
+@dataclass(frozen=True)
 class CalibrationResult:
-    """A calibration: the joint solution, its covariance, the staged start and the passes."""
+    """A calibration: the joint solution, its covariance, the staged start and the passes.
+    Immutable: a step that changes it returns a new one (:func:`dataclasses.replace`)."""
 
     params: Params
     staged: Staged
@@ -229,7 +230,7 @@ class CalibrationResult:
     cov: Covariance
     loss: str
     scale: float
-    passes: list[JointPass]
+    passes: tuple[JointPass, ...]
     timings: dict = field(default_factory=dict)
     kind_sigma: dict = field(default_factory=dict)  # per kind noise sigma (px) over its free rows (kind_noise)
     repairs: tuple[Repair, ...] = ()  # observations relabelled or left out (see :mod:`slcvjax.calibration.repairs`)

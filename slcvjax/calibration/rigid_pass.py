@@ -213,7 +213,7 @@ def rigid_refine(res: CalibrationResult, obs: Observations, group: list[str]) ->
         params=out_params,
         packed=cur,
         cov=cov_out,
-        passes=passes,
+        passes=tuple(passes),
         repairs=tuple(repairs),
         timings=timings,
         kind_sigma=dict(zip(KIND_NAMES, noise.sigma.tolist(), strict=True)),

@@ -54,12 +54,14 @@ from .passes import (
 from .repairs import leave_out, predicted_fit, relabel_spots, take_spot_records, use_all_but
 from .result import CalibrationResult
 from .staged import board_poses
-from .trial import Trial
+from .trial import Trial, start_trial
 
 
 class _Lockstep:
     """The trials of :func:`calibrate_lockstep` and how a pass's solves run over them: the driver
-    that :data:`SCHEDULE`'s steps call (``solver`` runs a pass's solves, all trials' at once)."""
+    that :data:`SCHEDULE`'s steps call (``solver`` runs a pass's solves, all trials' at once).
+    Each trial is an immutable :class:`Trial`; ``trials[i]`` is the current state of the i-th
+    calibration, replaced by each step that changes it."""
 
     def __init__(self, trials: list[Trial], solver, options: CalibrationOptions, bar=None):
         self.trials, self.solver, self.options, self.policy = trials, solver, options, options.robust
@@ -77,24 +79,25 @@ class _Lockstep:
         scale instead of the one ``spec`` gives)."""
         trials = self.trials
         for i in chosen:
-            tr = trials[i]
             if scale is not None:
-                tr.scale = scale
+                trials[i] = dataclasses.replace(trials[i], scale=scale)
             elif spec.scale_floor is not None:
-                self.rescale(tr, spec.scale_floor)
+                trials[i] = self.rescale(trials[i], spec.scale_floor)
         jobs = [solve_job(trials[i], trials[i].params, spec) for i in chosen]
         own = spec.steps if spec.steps is not None and spec.steps < self.max_steps else None  # the pass's own limit
         solved = self.solver(jobs, spec.loss or self.loss, own or self.max_steps, size=len(trials))
         for i, res in zip(chosen, solved, strict=True):
-            record_pass(trials[i], spec.name, res, own)
-            trials[i].params = unpad_params(trials[i].layout, res.params)
+            tr = record_pass(trials[i], spec.name, res, own)
+            trials[i] = dataclasses.replace(tr, params=unpad_params(tr.layout, res.params))
         if self.bar is not None:
             self.bar.set_postfix_str(spec.name.split(":")[0])
 
-    def rescale(self, tr: Trial, floor: float) -> None:
-        """The trial's loss scale where it stands: the user's, else ``policy.scale_sigmas`` x the
-        robust noise sigma, at least ``floor`` px."""
-        tr.scale = self.loss_scale or self.policy.scale_sigmas * max(robust_sigma(tr.params, tr.pk), floor)
+    def rescale(self, tr: Trial, floor: float) -> Trial:
+        """The trial with its loss scale where it stands: the user's, else ``policy.scale_sigmas`` x
+        the robust noise sigma, at least ``floor`` px."""
+        return dataclasses.replace(
+            tr, scale=self.loss_scale or self.policy.scale_sigmas * max(robust_sigma(tr.params, tr.pk), floor)
+        )
 
     def other_starts(self, chosen: list[int], turned_only: bool, pass_loss: str | None = None) -> list[int]:
         """Each board pose of the ``chosen`` trials swapped for its flipped twin, or for its pose
@@ -117,13 +120,14 @@ class _Lockstep:
         turned = []
         for n_i, i in enumerate(chosen):
             tr = trials[i]
-            n_moved = 0
+            params, n_moved = tr.params, 0
             for res in (kind[n_i] for kind in solved):
                 other = unpad_params(tr.layout, res.params)
-                tr.params, n = keep_better(tr.params, other, tr.pk, this_loss, tr.scale, turned_only)
+                params, n = keep_better(params, other, tr.pk, this_loss, tr.scale, turned_only)
                 n_moved += n
+            trials[i] = tr = dataclasses.replace(tr, params=params)
             if n_moved:
-                tr.passes[-1].notes.append(f"{n_moved} board pose(s) turned after it")
+                trials[i] = tr.noted(f"{n_moved} board pose(s) turned after it")
                 turned.append(i)
         return turned
 
@@ -154,11 +158,11 @@ class _Lockstep:
         # solution is taken again with the one the aimed solve started from (the same rig)
         current = self.solver(now, self.loss, 0, size=len(trials))
         for i, res, cur in zip(picked, solved, current, strict=True):
-            tr = trials[i]
             kept = float(res.cost) < float(cur.cost)
-            record_pass(tr, PASS_B2.name, res, None, "kept: a lower cost than B's" if kept else "B's cost is lower")
-            if kept:
-                tr.params = unpad_params(tr.layout, res.params)
+            tr = record_pass(
+                trials[i], PASS_B2.name, res, None, "kept: a lower cost than B's" if kept else "B's cost is lower"
+            )
+            trials[i] = dataclasses.replace(tr, params=unpad_params(tr.layout, res.params)) if kept else tr
 
     def result(self, tr: Trial) -> CalibrationResult:
         """A trial's result at the end of the schedule: its solution, covariance and passes."""
@@ -174,7 +178,7 @@ class _Lockstep:
             tr.passes,
             {"staged_s": tr.t_staged, "total_s": time.perf_counter() - tr.t0},
             dict(zip(KIND_NAMES, noise.sigma.tolist(), strict=True)),
-            tuple(tr.repairs),
+            tr.repairs,
             undetermined_lasers=tr.undetermined,
             observations=tr.obs,
             options=self.options,
@@ -197,10 +201,10 @@ def _reflip(d: _Lockstep) -> None:
         try:
             poses = stack_poses(board_poses(p.rig.camera, p.rig.mirror, tr.pk, start=p.poses)[0])
         except CalibrationError as e:
-            tr.passes[-1].notes.append(f"the boards' flips not decided again: {e}")
+            d.trials[i] = tr.noted(f"the boards' flips not decided again: {e}")
             continue
         if np.any(turned(poses, p.poses)):
-            tr.params = Params(p.rig, poses, p.chess)
+            d.trials[i] = dataclasses.replace(tr, params=Params(p.rig, poses, p.chess))
             again.append(i)
     if again:
         d.solve(PASS_A2, again)
@@ -210,19 +214,19 @@ def _refit_lasers(d: _Lockstep) -> None:
     """The lasers refitted on the refined geometry (:func:`slcvjax.calibration.laser_fit.fit_lasers`):
     spots relabelled or left out where they fit another laser's line or none, and a laser whose
     spots cannot fix a line held (undetermined)."""
-    for tr in d.trials:
+    for i, tr in enumerate(d.trials):
         p = tr.params
         fit = fit_lasers(p.rig.camera, p.rig.mirror, tr.pk, unstack_poses(p.poses), tr.obs.n_lasers, policy=d.policy)
-        tr.params = Params(p.rig.with_lasers(fit.lasers), p.poses, p.chess)
-        tr.undetermined = fit.held
-        tr.masks = make_masks(tr.params, tr.freeze, tr.estimate, held_lasers=tr.undetermined)
-        relabel_spots(tr, fit)
+        params = Params(p.rig.with_lasers(fit.lasers), p.poses, p.chess)
+        masks = make_masks(params, tr.freeze, tr.estimate, held_lasers=fit.held)
+        tr = dataclasses.replace(tr, params=params, undetermined=fit.held, masks=masks)
+        d.trials[i] = relabel_spots(tr, fit)
 
 
 def _rescale(d: _Lockstep) -> None:
     """The loss scale re-estimated at B's solution: the user's, else 3 x the robust noise sigma."""
-    for tr in d.trials:
-        d.rescale(tr, PASS_B.scale_floor)
+    for i, tr in enumerate(d.trials):
+        d.trials[i] = d.rescale(tr, PASS_B.scale_floor)
 
 
 def _readmit_set_aside(d: _Lockstep) -> None:
@@ -230,16 +234,15 @@ def _readmit_set_aside(d: _Lockstep) -> None:
     predicts near their own line (:func:`predicted_fit`) come back before C, which then fits
     them (rather than C again once they are judged on C's solution: :func:`leave_out` judges
     those still aside there)."""
-    for tr in d.trials:
+    for i, tr in enumerate(d.trials):
         if tr.set_aside is None:
             continue
         full, aside = tr.set_aside
         back = predicted_fit(tr, full, aside)
         if not back.any():
             continue
-        take_spot_records(tr, full, np.flatnonzero(back))
-        tr.set_aside = (full, aside & ~back)
-        use_all_but(tr, full, aside & ~back)
+        tr = take_spot_records(tr, full, np.flatnonzero(back))[0]
+        d.trials[i] = use_all_but(dataclasses.replace(tr, set_aside=(full, aside & ~back)), full, aside & ~back)
 
 
 def _leave_outliers(d: _Lockstep) -> None:
@@ -247,19 +250,21 @@ def _leave_outliers(d: _Lockstep) -> None:
     spot) left out and C run again (C3), so that none is spread over good ones (:func:`leave_out`)."""
     for i in d.every:
 
-        def rerun(pass_loss, scale, i=i):
+        def rerun(tr, pass_loss, scale, i=i):
             spec = PASS_C3
             if pass_loss:
                 name = f"C3: joint (Cauchy loss at {scale:.3g} px, to find the outliers)"
                 spec = dataclasses.replace(PASS_C3, name=name, loss=pass_loss)
+            d.trials[i] = tr
             d.solve(spec, [i], scale)
+            return d.trials[i]
 
-        leave_out(
-            d.trials[i],
-            lambda i=i: d.other_starts([i], turned_only=False, pass_loss="cauchy"),
-            rerun,
-            find=d.loss != "linear",
-        )
+        def starts(tr, i=i):
+            d.trials[i] = tr
+            d.other_starts([i], turned_only=False, pass_loss="cauchy")
+            return d.trials[i]
+
+        d.trials[i] = leave_out(d.trials[i], starts, rerun, find=d.loss != "linear")
 
 
 def _turn_misfits(d: _Lockstep, rounds: int = 3) -> None:
@@ -333,7 +338,9 @@ def calibrate_lockstep(obs_list, camera, options: CalibrationOptions, solver, ba
     (its rigid box aside: :mod:`slcvjax.calibration.rigid_pass`); ``solver`` runs a pass's
     solves (:mod:`slcvjax.calibration.executors`)."""
     trials = [
-        Trial(o, camera, options, time.perf_counter(), fine=solver is solve_vmap, mirror=mirror, estimate=estimate)
+        start_trial(
+            o, camera, options, time.perf_counter(), fine=solver is solve_vmap, mirror=mirror, estimate=estimate
+        )
         for o in obs_list
     ]
     d = _Lockstep(trials, solver, options, bar)

@@ -256,7 +256,7 @@ def load_result(path: str | os.PathLike) -> CalibrationResult:
     options = CalibrationOptions.from_json(_get(prob, "options", "problem", source), f"{source}: problem.options")
     stages = _get(doc, "stages", "", source)
     joint = _get(stages, "joint", "stages", source)
-    passes = [
+    passes = tuple(
         JointPass(
             p["name"],
             p["steps"],
@@ -265,10 +265,10 @@ def load_result(path: str | os.PathLike) -> CalibrationResult:
             p["scale"],
             Outcome[p["outcome"].upper()],
             p["limit"],
-            list(p["notes"]),
+            tuple(p["notes"]),
         )
         for p in joint["passes"]
-    ]
+    )
     unc = _get(doc, "uncertainty", "", source)
     box = _box(unc["rigid_box"]) if unc.get("rigid_box") is not None else None
     if box is None:
