@@ -101,11 +101,40 @@ def test_sensitivity_from_the_file(free):
             np.testing.assert_allclose(np.asarray(y), np.asarray(x), rtol=1e-9, atol=1e-12)
 
 
+@pytest.fixture(scope="module")
+def rigid(tmp_path_factory, request):
+    """A rigid box calibration read back with the covariance path switched off: the file's
+    covariance is read, the box model is not rebuilt (nor any covariance computed again)."""
+    import slcvjax.calibration.stored as stored
+
+    def refused(*args, **kwargs):
+        raise AssertionError("load_result computed a covariance for a rigid box calibration")
+
+    mp = pytest.MonkeyPatch()
+    mp.setattr(stored, "covariance_and_noise", refused)
+    request.addfinalizer(mp.undo)
+    return _calibrated(tmp_path_factory.mktemp("rigid"), rigid=True)
+
+
 @pytest.mark.slow
-def test_a_rigid_box_calibration_reads_back(tmp_path):
-    obs, _, live, loaded = _calibrated(tmp_path, rigid=True)
+def test_a_rigid_box_calibration_reads_back(rigid):
+    obs, _, live, loaded = rigid
     assert loaded.box is not None
     _close(_json(sj.report(loaded)), _json(sj.report(live, obs)))
+
+
+@pytest.mark.slow
+def test_a_rigid_box_calibrations_std_round_trips(rigid):
+    """The stored covariance is the live one, bit for bit, and so are the std reported from it
+    (camera, mirror, lasers at their working range, the boards in the box)."""
+    obs, _, live, loaded = rigid
+    for name in ("glob", "blocks", "sigma", "dof"):
+        np.testing.assert_array_equal(np.asarray(getattr(loaded.cov, name)), np.asarray(getattr(live.cov, name)))
+    assert list(loaded.kind_sigma) == list(live.kind_sigma)
+    np.testing.assert_array_equal(list(loaded.kind_sigma.values()), list(live.kind_sigma.values()))  # NaN too
+    a, b = _json(sj.report(live, obs))["uncertainty"], _json(sj.report(loaded))["uncertainty"]
+    for key in ("camera_std", "mirror_std", "lasers", "rigid_box"):
+        assert b[key] == a[key], key
 
 
 def test_a_file_without_its_problem_is_refused_by_name(free, tmp_path):
