@@ -111,6 +111,7 @@ CALIBRATION = [
     "options",
     "base",
     "laser_fit",
+    "sheet_fit",
     "staged",
     "central",
     "params",

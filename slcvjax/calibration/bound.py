@@ -12,6 +12,7 @@ from ..geometry.pose import Pose
 from ..geometry.rig import (
     Rig,
 )
+from ..geometry.sheets import Sheets, sheet_gradient, sheet_value
 from ..observations.formats import Calibration, Observations
 from ..observations.problem import Packed, pack, stack_poses, unstack_poses
 from ..support.safe import std_of_variance
@@ -66,8 +67,9 @@ def laser_std(rig: Rig, cov_glob: np.ndarray, x_ref: np.ndarray) -> tuple[np.nda
     n = rig.lasers.n
     pos, ang = np.zeros(n), np.zeros(n)
     cov_glob = np.asarray(cov_glob)
+    element = rig.point_elements
     for i in range(n):
-        sl = rig.layout.elements[i]
+        sl = rig.layout.elements[int(element[i])]
         c = cov_glob[sl, sl]
         # a block that is not positive: the data do not determine this laser (NaN, not 0)
         definite = bool(np.all(np.isfinite(c))) and (
@@ -79,6 +81,80 @@ def laser_std(rig: Rig, cov_glob: np.ndarray, x_ref: np.ndarray) -> tuple[np.nda
         else:
             pos[i] = ang[i] = np.nan
     return pos, ang
+
+
+def sheet_working_points(rig: Rig, poses: Pose, pk: Packed) -> np.ndarray:
+    """Per line or ring laser, the point of its sheet nearest the mean of its stripe samples'
+    points on their boards (mm, camera frame; the samples' reflected rays on their boards' planes,
+    by ``rig``).  A sheet without samples takes its apex."""
+    from .sheet_fit import stripe_points
+
+    n = rig.sheets.n if rig.has_sheets else 0
+    out = np.zeros((n, 3))
+    if not n:
+        return out
+    pts, usable = stripe_points(rig.camera, rig.mirror, pk, unstack_poses(poses))
+    sheet_of = np.asarray(pk.stripe_sheet)[: pts.shape[0]]
+    for i in range(n):
+        sel = usable & (sheet_of == i)
+        c = pts[sel].mean(axis=0) if sel.any() else np.asarray(rig.sheets.apex[i])
+        out[i] = np.asarray(rig.sheets.at_working_point(i, c)[0])
+    return out
+
+
+def sheet_variance(sheets: Sheets, i, x_ref, block) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Sheet ``i``'s variances at its working point ``x_ref`` (3,) from its block of a covariance
+    (its own tangent columns: 3 for a plane, 6 for a cone): of its position along its normal there
+    (mm^2), of its normal's direction (rad^2) and of its half-angle (rad^2; 0 for a plane)."""
+
+    def moved(d):
+        foot, normal, *_ = sheets.at_working_point(i, x_ref, d)
+        return jnp.dot(foot - x_ref, sheets.at_working_point(i, x_ref)[1]), normal
+
+    d0 = jnp.zeros(block.shape[0])
+    jp = jax.jacfwd(lambda d: moved(d)[0])(d0)
+    jn = jax.jacfwd(lambda d: moved(d)[1])(d0)
+    var_angle = block[5, 5] if block.shape[0] == 6 else jnp.zeros(())
+    return jp @ block @ jp, jnp.trace(jn @ block @ jn.T), var_angle
+
+
+def sheet_std(rig: Rig, cov_glob: np.ndarray, x_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per line or ring laser (:func:`sheet_variance`): the std of its position along its normal at
+    ``x_ref`` (mm), of its normal (rad) and of its half-angle (rad; 0 for a plane); NaN where its
+    covariance block is not positive (undetermined)."""
+    n = rig.sheets.n if rig.has_sheets else 0
+    pos, nrm, ang = np.zeros(n), np.zeros(n), np.zeros(n)
+    cov_glob = np.asarray(cov_glob)
+    for i, e in enumerate(rig.sheet_elements):
+        sl = rig.layout.elements[int(e)]
+        c = cov_glob[sl, sl]
+        definite = bool(np.all(np.isfinite(c))) and (
+            np.linalg.eigvalsh(0.5 * (c + c.T)).min() >= -1e-9 * max(np.abs(c).max(), 1e-300)
+        )
+        if not definite:
+            pos[i] = nrm[i] = ang[i] = np.nan
+            continue
+        vp, vn, va = (float(v) for v in sheet_variance(rig.sheets, i, jnp.asarray(x_ref[i]), jnp.asarray(c)))
+        pos[i], nrm[i], ang[i] = std_of_variance(vp), std_of_variance(vn), std_of_variance(va)
+    return pos, nrm, ang
+
+
+def sheet_errors(est: Rig, truth: Rig, x_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per line or ring laser: the distance (mm) from the true sheet's point ``x_ref`` to the
+    estimated sheet (first order, along its normal), the angle (rad) between the two sheets'
+    normals there, and the half-angle's error (rad; 0 for a plane)."""
+    n = truth.sheets.n
+    pos, nrm, ang = np.zeros(n), np.zeros(n), np.zeros(n)
+    for i in range(n):
+        e, t, x = est.sheets, truth.sheets, jnp.asarray(x_ref[i])
+        g = sheet_value(x, e.apex[i], e.axis[i], e.half_angle[i])
+        ge = sheet_gradient(x, e.apex[i], e.axis[i], e.half_angle[i])
+        gt = sheet_gradient(x, t.apex[i], t.axis[i], t.half_angle[i])
+        pos[i] = abs(float(g)) / float(jnp.linalg.norm(ge))
+        ne, nt = np.asarray(ge) / np.linalg.norm(ge), np.asarray(gt) / np.linalg.norm(gt)
+        nrm[i] = np.arctan2(np.linalg.norm(np.cross(ne, nt)), abs(float(ne @ nt)))
+        ang[i] = abs(float(e.half_angle[i]) - float(t.half_angle[i]))
+    return pos, nrm, ang
 
 
 def laser_errors(est: Rig, truth: Rig, x_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -133,11 +209,20 @@ def cramer_rao(
         cov = cov._replace(glob=np.asarray(cov.glob)[:g, :g])
     x_ref = laser_working_points(truth.rig, poses, pk)
     pos, ang = laser_std(truth.rig, np.asarray(cov.glob), x_ref)
+    if truth.rig.has_sheets:
+        xs = sheet_working_points(truth.rig, poses, pk)
+        sp, sn, sa = sheet_std(truth.rig, np.asarray(cov.glob), xs)
+        out |= {
+            "sheet_x_ref": xs,
+            "sheet_position_std_mm": sp,
+            "sheet_normal_std_rad": sn,
+            "sheet_angle_std_rad": sa,
+        }
     return out | {
         "cov": cov,
         "x_ref": x_ref,
         "position_std_mm": pos,
         "direction_std_rad": ang,
-        "position_rms_mm": float(np.sqrt(np.mean(pos**2))),
-        "direction_rms_rad": float(np.sqrt(np.mean(ang**2))),
+        "position_rms_mm": float(np.sqrt(np.mean(pos**2))) if pos.size else float("nan"),
+        "direction_rms_rad": float(np.sqrt(np.mean(ang**2))) if ang.size else float("nan"),
     }

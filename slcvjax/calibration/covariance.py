@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from ..observations.problem import Kind, Layout, Packed
+from ..observations.problem import KIND_NAMES, Kind, Layout, Packed, kinds_of
 from ..support.persist import PersistentJit
 from .base import CalibrationError
 from .evaluate import linearisation_at, per_observation, solve_compiled
@@ -107,9 +107,10 @@ def covariance_of(params: Params, pk: Packed, masks: Masks, loss: str, scale, si
         return covariance_and_noise(params, pk, masks, loss, scale)[0]
     sig = np.asarray(sigma, dtype=float)
     if sig.ndim == 1:
-        if sig.shape != (len(Kind),) or not np.all(np.isfinite(sig) & (sig > 0)):
+        n_k = len(kinds_of(pk))
+        if sig.shape != (n_k,) or not np.all(np.isfinite(sig) & (sig > 0)):
             raise ValueError(
-                f"per-kind sigmas: expected {len(Kind)} positive numbers (dot, spot, rim, chess), got {sig}"
+                f"per-kind sigmas: expected {n_k} positive numbers ({', '.join(KIND_NAMES[:n_k])}), got {sig}"
             )
         layout, lin = linearisation_at(params, pk, masks, loss, scale, kind_weight=tuple(1.0 / sig**2))
         sig = np.asarray(1.0)
@@ -157,12 +158,13 @@ def sandwich_of(layout: Layout, full, parts, masks: Masks) -> "tuple[Covariance,
 
 
 def kind_sigmas(params: Params, pk: Packed, min_count: int = 10) -> np.ndarray:
-    """Per kind (dot, spot, rim, chess corner) the noise sigma (px) from its median residual.
+    """Per kind (dot, spot, rim, chess corner, and stripe sample where there are stripes) the
+    noise sigma (px) from its median residual.
 
-    Rim residuals are 1D (a distance to the rim curve), the others 2D.  NaN for a kind
+    Rim and stripe residuals are 1D (a distance to a curve), the others 2D.  NaN for a kind
     with fewer than ``min_count`` valid observations.
     """
-    return sigmas_of(*per_observation(params, pk), min_count)
+    return sigmas_of(*per_observation(params, pk), min_count)[: len(kinds_of(pk))]
 
 
 def sigmas_of(norm, kind, ok, min_count: int = 10) -> np.ndarray:
@@ -171,7 +173,7 @@ def sigmas_of(norm, kind, ok, min_count: int = 10) -> np.ndarray:
     for k in Kind:
         sel = ok & (kind == k)
         if sel.sum() >= min_count:
-            out[k] = np.median(norm[sel]) / (HALF_NORMAL_MEDIAN if k == Kind.RIM else RAYLEIGH_MEDIAN)
+            out[k] = np.median(norm[sel]) / (HALF_NORMAL_MEDIAN if k.rows == 1 else RAYLEIGH_MEDIAN)
     return out
 
 
@@ -207,7 +209,10 @@ def kind_linearisations(params: Params, pk: Packed, masks: Masks, loss: str, sca
     layout, p, padded, m = pad_problem(params, pk, masks)
     full = solve_compiled(p, padded, m, loss, scale, 0).linearisation
     # one kind's rows alone: the others' counted as padding, which the sums skip
-    parts = [solve_compiled(p, padded.kinds_only(np.eye(len(Kind))[k]), m, loss, scale, 0).linearisation for k in Kind]
+    kinds = kinds_of(pk)
+    parts = [
+        solve_compiled(p, padded.kinds_only(np.eye(len(kinds))[k]), m, loss, scale, 0).linearisation for k in kinds
+    ]
     return layout, full, parts
 
 
@@ -215,7 +220,8 @@ def _noise_of(full, parts) -> KindNoise:
     t = full.table
     real = np.asarray(t.valid) & np.asarray(t.present)
     kinds = np.asarray(t.kind)
-    rows = np.array([(1.0 if k == Kind.RIM else 2.0) * np.sum(real & (kinds == k)) for k in Kind])
+    present = tuple(Kind)[: len(parts)]
+    rows = np.array([float(k.rows) * np.sum(real & (kinds == k)) for k in present])
     # every kind's share in one call (H^-1 once); a kind without rows fixes nothing
     stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *((p.normal, p.seen_glob, p.seen_blocks) for p in parts))
     lev = np.where(rows > 0, np.asarray(_leverage_shares_jit(full.normal, *stacked)), 0.0)
@@ -224,7 +230,7 @@ def _noise_of(full, parts) -> KindNoise:
     # its large residuals down-weighted and its sigma understated (gross outliers are left out
     # by then)
     sq = np.asarray(t.sq)
-    wsq = np.array([float(np.sum(sq[real & (kinds == k)])) for k in Kind])
+    wsq = np.array([float(np.sum(sq[real & (kinds == k)])) for k in present])
     sigma = np.where(free >= MIN_FREE_ROWS, np.sqrt(wsq / np.maximum(free, 1.0)), np.nan)
     return KindNoise(rows, lev, sigma)
 
@@ -250,7 +256,7 @@ def robust_sigma(params: Params, pk: Packed) -> float:
 
 def robust_sigma_of(norm, kind, ok) -> float:
     """:func:`robust_sigma` of a per-observation table (``per_observation``'s)."""
-    sel = ok & (kind != 2)
+    sel = ok & (kind != Kind.RIM) & (kind != Kind.STRIPE)
     if not sel.any():
         return 1.0
     return float(np.median(norm[sel]) / RAYLEIGH_MEDIAN)

@@ -65,7 +65,7 @@ def table_of(params: Params, pk: Packed):
     ``params`` (the last few kept: a fit looks at one solution's table several times)."""
 
     def compute():
-        layout = Layout.of(pk, n_lasers=params.rig.lasers.n)
+        layout = Layout.of(pk, n_lasers=params.rig.lasers.n, sheet_dim=params.rig.sheet_dim)
         return layout, _table_jit(pad_params(layout, params), layout.pad_packed(pk))
 
     return _TABLES.get((params, pk), None, compute)

@@ -1,9 +1,9 @@
 """The joint problem linearised: residual rows with their local Jacobians, summed into the normal
 equations chunk by chunk.
 
-The observations fall into three groups, each with one residual function
-(:func:`observation_groups`): dots and spots (a 3D point, then one projection through the mirror),
-rim pixels, and the direct views' chessboard corners.  :func:`accumulate` loops over chunks of each
+The observations fall into groups, each with one residual function (:func:`observation_groups`):
+dots and spots (a 3D point, then one projection through the mirror), rim pixels, the direct views'
+chessboard corners, and the samples of line and ring lasers' stripes.  :func:`accumulate` loops over chunks of each
 group's real rows (:data:`CHUNKS`), so that a shape bucket's padding costs only memory, and sums the
 normal equations (:mod:`slcvjax.calibration.schur`), the robust cost
 (:mod:`slcvjax.calibration.losses`) and the per-observation table.  :func:`rows_at` gives every row
@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
+from ..geometry.sheets import CONE_DOF
 from ..observations.problem import Kind, Packed, kind_weights
 from .losses import ObservationTable, robust_observations
 from .params import N_CAM, N_CM, N_LAS, N_MIR, Masks, Params, element_columns
@@ -28,11 +29,13 @@ from .residuals import (
     rim_residual,
     spot_point,
     spot_point_box,
+    stripe_residual,
+    stripe_residual_box,
 )
 from .schur import Normal, Rows, add_rows, finish_normal, zero_normal
 
-# observations per step of the loop in :func:`accumulate`: dots and spots, rim pixels, corners
-CHUNKS = (64, 256, 128)
+# observations per step of the loop in :func:`accumulate`: dots and spots, rim pixels, corners, stripe samples
+CHUNKS = (64, 256, 128, 128)
 
 
 class Chunk(NamedTuple):
@@ -96,8 +99,11 @@ def observation_groups(params: Params, pk: Packed, with_jac: bool, rim_norm: Arr
             jac = jnp.zeros(r.shape + (n_local,))
         return r, jac, ok
 
+    # an element's columns in every row: a point laser's 4, or 6 where the rig has sheets (a cone's 6)
+    n_el = CONE_DOF if rig.has_sheets else N_LAS
     cm_idx = jnp.arange(N_CM)
-    unused = jnp.full(N_LAS + extra, g)
+    unused = jnp.full(n_el + extra, g)
+    point_elements = jnp.asarray(rig.point_elements) if rig.kinds and las.n else None
 
     # dots and spots: first each one's 3D point with its derivative in its local laser (4,
     # zero for a dot) and pose (6) parameters, then one projection through the mirror for
@@ -137,12 +143,17 @@ def observation_groups(params: Params, pk: Packed, with_jac: bool, rim_norm: Arr
                 )
         r, j, ok = jax.vmap(lambda x, px: lin(point_residual, N_CM + 3, cam, mir, x, px))(x, px)
         j = jnp.concatenate([j[:, :, :N_CM], j[:, :, N_CM:] @ jx], axis=2)
-        lidx = jnp.where(spot[:, None], element_columns(rig, laser, N_LAS, g), g)
+        if n_el > N_LAS:  # the element's unused columns
+            j = jnp.concatenate(
+                [j[:, :, : N_CM + N_LAS], jnp.zeros(j.shape[:2] + (n_el - N_LAS,)), j[:, :, N_CM + N_LAS :]], axis=2
+            )
+        element = laser if point_elements is None else point_elements[laser]
+        lidx = jnp.where(spot[:, None], element_columns(rig, element, n_el, g), g)
         parts = [jnp.broadcast_to(cm_idx, (r.shape[0], N_CM)), lidx]
         if box:
             parts.append(jnp.where((in_box < n_box)[:, None], rig.tangent_dim + 6 * in_box[:, None] + jnp.arange(6), g))
         gidx = jnp.concatenate(parts, axis=1)
-        w = N_CM + N_LAS + extra
+        w = N_CM + n_el + extra
         return Chunk(r, j[:, :, :w], gidx, j[:, :, w:], block, ok & ok_x, spot.astype(int))
 
     dots_spots = Group(
@@ -163,8 +174,8 @@ def observation_groups(params: Params, pk: Packed, with_jac: bool, rim_norm: Arr
         k = r.shape[0]
         return Chunk(
             r,
-            jnp.concatenate([j, jnp.zeros((k, 1, N_LAS + extra))], axis=2),
-            jnp.broadcast_to(jnp.concatenate([cm_idx, unused]), (k, N_CM + N_LAS + extra)),
+            jnp.concatenate([j, jnp.zeros((k, 1, n_el + extra))], axis=2),
+            jnp.broadcast_to(jnp.concatenate([cm_idx, unused]), (k, N_CM + n_el + extra)),
             jnp.zeros((k, 1, 6)),
             jnp.full(k, nb),
             ok,
@@ -180,9 +191,9 @@ def observation_groups(params: Params, pk: Packed, with_jac: bool, rim_norm: Arr
         k = r.shape[0]
         return Chunk(
             r,
-            jnp.concatenate([j[:, :, :N_CAM], jnp.zeros((k, 2, N_MIR + N_LAS + extra))], axis=2),
+            jnp.concatenate([j[:, :, :N_CAM], jnp.zeros((k, 2, N_MIR + n_el + extra))], axis=2),
             jnp.broadcast_to(
-                jnp.concatenate([jnp.arange(N_CAM), jnp.full(N_MIR + N_LAS + extra, g)]), (k, N_CM + N_LAS + extra)
+                jnp.concatenate([jnp.arange(N_CAM), jnp.full(N_MIR + n_el + extra, g)]), (k, N_CM + n_el + extra)
             ),
             j[:, :, N_CAM:],
             n_p + pose,
@@ -199,7 +210,44 @@ def observation_groups(params: Params, pk: Packed, with_jac: bool, rim_norm: Arr
     )
     if mir is None:  # the other groups have no rows: their rows' offsets are those of the full list
         return [chess_group]
-    return [dots_spots, rim_group, chess_group]
+    if not pk.has_stripes:
+        return [dots_spots, rim_group, chess_group]
+
+    sh = rig.sheets
+    sheet_elements = jnp.asarray(rig.sheet_elements)
+    is_cone = jnp.asarray(sh.is_cone)
+
+    def stripes(pose, sheet, uv, spot_chunk=None):
+        p, a, th, cone = sh.apex[sheet], sh.axis[sheet], sh.half_angle[sheet], is_cone[sheet]
+        if box:
+            block, in_box = pk.pair_block[pose], pk.pair_box[pose]
+            R, t = params.poses.R[block], params.poses.t[block]
+            Rb, tb = box_R[in_box], box_t[in_box]
+            r, j, ok = jax.vmap(lambda *a: lin(stripe_residual_box, N_CM + CONE_DOF + 12, cam, mir, *a))(
+                p, a, th, cone, R, t, Rb, tb, uv
+            )
+        else:
+            block = pose
+            R, t = params.poses.R[pose], params.poses.t[pose]
+            r, j, ok = jax.vmap(lambda *a: lin(stripe_residual, N_CM + CONE_DOF + 6, cam, mir, *a))(
+                p, a, th, cone, R, t, uv
+            )
+        k = r.shape[0]
+        parts = [jnp.broadcast_to(cm_idx, (k, N_CM)), element_columns(rig, sheet_elements[sheet], CONE_DOF, g)]
+        if box:
+            parts.append(jnp.where((in_box < n_box)[:, None], rig.tangent_dim + 6 * in_box[:, None] + jnp.arange(6), g))
+        w = N_CM + CONE_DOF + extra
+        return Chunk(
+            r, j[:, :, :w], jnp.concatenate(parts, axis=1), j[:, :, w:], block, ok, jnp.full(k, int(Kind.STRIPE))
+        )
+
+    stripe_group = Group(
+        stripes,
+        (pk.stripe_pose, pk.stripe_sheet, pk.stripe_pixels),
+        [(0, pk.counts[Kind.STRIPE])],
+        CHUNKS[3],
+    )
+    return [dots_spots, rim_group, chess_group, stripe_group]
 
 
 def flat_rows(c: Chunk, present: Bool[Array, " k"], first_obs) -> Rows:
@@ -259,7 +307,8 @@ def present_rows(regions, n: int) -> Bool[Array, " n"]:
 
 
 def n_observations(pk: Packed) -> int:
-    return pk.dot_pose.shape[0] + pk.spot_pose.shape[0] + pk.rim_pixels.shape[0] + pk.chess_pose.shape[0]
+    n = pk.dot_pose.shape[0] + pk.spot_pose.shape[0] + pk.rim_pixels.shape[0] + pk.chess_pose.shape[0]
+    return n + (pk.stripe_pose.shape[0] if pk.has_stripes else 0)
 
 
 def chunk_bounds(spans, n: int, k: int, i, n_chunks):
@@ -376,15 +425,21 @@ def cost_at(params, pk, loss, scale, kind_weight, rim_norm=None, real_only=True)
 
 
 def table_arrays(params: Params, pk: Packed) -> tuple[Array, Array, Array]:
-    """Per observation (dots, spots, rim pixels, corners): its kind, whether it is real, its pose block."""
-    n_d, n_s, n_r, n_c = pk.dot_pose.shape[0], pk.spot_pose.shape[0], pk.rim_pixels.shape[0], pk.chess_pose.shape[0]
-    kind = jnp.concatenate([jnp.full(n, k, dtype=int) for n, k in zip((n_d, n_s, n_r, n_c), Kind, strict=True)])
+    """Per observation (dots, spots, rim pixels, corners, stripe samples): its kind, whether it is
+    real, its pose block."""
+    sizes = [pk.dot_pose.shape[0], pk.spot_pose.shape[0], pk.rim_pixels.shape[0], pk.chess_pose.shape[0]]
+    if pk.has_stripes:
+        sizes.append(pk.stripe_pose.shape[0])
+    kind = jnp.concatenate([jnp.full(n, k, dtype=int) for n, k in zip(sizes, Kind, strict=False)])
     dot_block, spot_block = pk.dot_pose, pk.spot_pose
+    stripe_block = pk.stripe_pose
     if params.box is not None:
         dot_block, spot_block = pk.pair_block[dot_block], pk.pair_block[spot_block]
-    block = jnp.concatenate(
-        [dot_block, spot_block, jnp.full(n_r, params.n_blocks), params.poses.t.shape[0] + pk.chess_pose]
-    )
+        stripe_block = None if stripe_block is None else pk.pair_block[stripe_block]
+    parts = [dot_block, spot_block, jnp.full(sizes[2], params.n_blocks), params.poses.t.shape[0] + pk.chess_pose]
+    if pk.has_stripes:
+        parts.append(stripe_block)
+    block = jnp.concatenate(parts)
     return kind, jnp.concatenate(pk.present()), block
 
 

@@ -82,10 +82,12 @@ def make_masks(
     freeze: frozenset | set | tuple = (),
     estimate: frozenset | set | tuple = (),
     held_lasers: tuple[int, ...] = (),
+    held_sheets: tuple[int, ...] = (),
 ) -> Masks:
     """Freeze masks from block names: camera, mirror, mirror_tilt (the mirror's axis only),
-    lasers, poses, chess_poses; ``held_lasers``: the indices of single lasers held besides
-    (undetermined ones: :func:`slcvjax.calibration.laser_fit.fit_lasers`).  The mirror's shape
+    lasers, poses, chess_poses; ``held_lasers``: the indices of single point lasers held besides
+    (undetermined ones: :func:`slcvjax.calibration.laser_fit.fit_lasers`), ``held_sheets``: of
+    single line and ring lasers (their indices among the rig's sheets).  The mirror's shape
     column (its conic constant) is estimated only
     where ``estimate`` names ``shape``, the mirror is not frozen and is a conic one.  Before a
     telecentric camera the mirror's depth (its apex's z) is held: it is the gauge of a view
@@ -104,8 +106,16 @@ def make_masks(
     bad_l = [i for i in held_lasers if not 0 <= i < n_l]
     if bad_l:
         raise ValueError(f"held laser {bad_l[0]} is not one of the rig's {n_l} lasers")
+    n_s = params.rig.sheets.n if params.rig.has_sheets else 0
+    bad_s = [i for i in held_sheets if not 0 <= i < n_s]
+    if bad_s:
+        raise ValueError(f"held sheet {bad_s[0]} is not one of the rig's {n_s} line and ring lasers")
+    held = set(held_lasers)
+    if params.rig.kinds:  # the point lasers' and the sheets' own indices as the elements'
+        held = {int(params.rig.point_elements[i]) for i in held_lasers}
+        held |= {int(params.rig.sheet_elements[i]) for i in held_sheets}
     dofs = params.rig.layout.element_dofs
-    las = [np.full(dof, 0.0 if "lasers" in freeze or i in held_lasers else 1.0) for i, dof in enumerate(dofs)]
+    las = [np.full(dof, 0.0 if "lasers" in freeze or i in held else 1.0) for i, dof in enumerate(dofs)]
     glob = np.concatenate(
         [
             np.full(N_CAM, 0.0 if "camera" in freeze else 1.0),
@@ -162,6 +172,10 @@ def pad_problem(params: Params, pk: Packed, masks: Masks) -> tuple[Layout, Param
     layout, parameters, arrays and masks (padded lasers and pose blocks held, padded rows
     adding nothing)."""
     layout = Layout.of(
-        pk, n_poses=params.poses.t.shape[0], n_chess=params.chess.t.shape[0], n_lasers=params.rig.lasers.n
+        pk,
+        n_poses=params.poses.t.shape[0],
+        n_chess=params.chess.t.shape[0],
+        n_lasers=params.rig.lasers.n,
+        sheet_dim=params.rig.sheet_dim,
     )
     return layout, pad_params(layout, params), layout.pad_packed(pk), pad_masks(layout, masks)

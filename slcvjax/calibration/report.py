@@ -18,18 +18,19 @@ from ..geometry.rig import (
     project_spots,
 )
 from ..observations.formats import Calibration, Observations
-from ..observations.problem import KIND_NAMES, Kind, unstack_poses
+from ..observations.problem import KIND_NAMES, Kind, kinds_of, unstack_poses
 from ..support.safe import std_of_variance
-from .bound import laser_std, laser_working_points
+from .bound import laser_std, laser_working_points, sheet_std, sheet_working_points
 from .evaluate import per_observation
 from .result import CalibrationResult
 from .stored import problem_json
 
 
 def _obs_table(result: CalibrationResult):
-    """Per observation: kind, 2D residual norm (px), validity, its (view, board, laser) labels
-    and its index in its view (a dot's in its board, a spot's among the view's spots; -1 where
-    the problem was not packed from observations)."""
+    """Per observation: kind, 2D residual norm (px; a stripe sample's and a rim pixel's distance
+    from their curve), validity, its (view, board, laser) labels (a laser by its index in the
+    file) and its index in its view (a dot's in its board, a spot's among the view's spots, a
+    stripe sample's in its stripe; -1 where the problem was not packed from observations)."""
     pk = result.packed
     norm, kind, ok = per_observation(result.params, pk)
     n_obs = norm.size
@@ -48,8 +49,19 @@ def _obs_table(result: CalibrationResult):
         laser[n_d + j] = las
     for j, (_, i) in enumerate(pk.spot_src):
         index[n_d + j] = i
+    if result.rig.kinds:  # the spots' lasers by their index in the file
+        sel = laser >= 0
+        laser[sel] = result.rig.point_elements[laser[sel]]
     for j, k in enumerate(np.asarray(pk.chess_pose)):
         view[n_d + n_s + n_r + j] = pk.chess_keys[k]
+    if pk.has_stripes:
+        first = n_d + n_s + n_r + pk.chess_pose.shape[0]
+        elements = result.rig.sheet_elements
+        for j, (k, sh) in enumerate(zip(np.asarray(pk.stripe_pose), np.asarray(pk.stripe_sheet), strict=True)):
+            view[first + j], board[first + j] = keys[k]
+            laser[first + j] = elements[sh]
+        for j, (_, _, i) in enumerate(pk.stripe_src):
+            index[first + j] = i
     return norm, kind, ok, view, board, laser, index
 
 
@@ -80,16 +92,18 @@ def report(result: CalibrationResult, obs: Observations | None = None) -> dict:
     obs = _observations(result, obs)
     norm, kind, ok, view, board, laser, index = _obs_table(result)
     sigma = float(result.cov.sigma)
-    point = (kind == Kind.DOT) | (kind == Kind.SPOT)
+    point = (kind == Kind.DOT) | (kind == Kind.SPOT) | (kind == Kind.STRIPE)
     # beyond the policy's outlier sigmas of its own kind (the pooled sigma where the kind has none)
     n_sig = result.options.robust.outlier_sigmas
+    kinds = kinds_of(result.packed)
     own = np.array([result.kind_sigma.get(k.label) for k in Kind], dtype=float)  # None: NaN
     own = np.where(np.isfinite(own), own, sigma)
     outlier = ok & point & (norm > n_sig * own[kind])
     per_view = {obs.views[v].name: _rms(norm[ok & point & (view == v)]) for v in range(len(obs.views))}
     boards = sorted({b for b in board if b})
     per_board = {b: _rms(norm[ok & (kind == Kind.DOT) & (board == b)]) for b in boards}
-    per_laser = {str(i): _rms(norm[ok & (kind == Kind.SPOT) & (laser == i)]) for i in range(obs.n_lasers)}
+    structured = (kind == Kind.SPOT) | (kind == Kind.STRIPE)
+    per_laser = {str(i): _rms(norm[ok & structured & (laser == i)]) for i in range(obs.n_lasers)}
     per_direct = {
         obs.calibration_views[c].name: _rms(norm[ok & (kind == Kind.CHESS) & (view == c)])
         for c in result.packed.chess_keys
@@ -103,14 +117,14 @@ def report(result: CalibrationResult, obs: Observations | None = None) -> dict:
             "index": int(index[i]),
             "residual_px": float(norm[i]),
         }
-        if kind[i] == Kind.SPOT:
+        if kind[i] in (Kind.SPOT, Kind.STRIPE):
             item["laser"] = int(laser[i])
         outliers.append(item)
     residuals = {
         "rms_px": _rms(norm[ok]),
         "sigma_px": sigma,
         "dof": int(result.cov.dof),
-        "by_kind_rms_px": {k.label: _rms(norm[ok & (kind == k)]) for k in Kind},
+        "by_kind_rms_px": {k.label: _rms(norm[ok & (kind == k)]) for k in kinds},
         "by_kind_sigma_px": {k: (None if not np.isfinite(v) else v) for k, v in result.kind_sigma.items()},
         "per_view_rms_px": per_view,
         "per_board_rms_px": per_board,
@@ -146,33 +160,73 @@ def report(result: CalibrationResult, obs: Observations | None = None) -> dict:
             "axis_tilt_deg": _finite_or_none(np.degrees(sd[TILT_COLUMNS])),
         }
         | ({"conic_constant": _finite_or_none(sd[SHAPE_COLUMN])} if float(result.masks.glob[SHAPE_COLUMN]) else {}),
-        "lasers": [
-            {
-                "working_point": None if i in held else x_ref[i].tolist(),
-                "working_range_mm": None if i in held else float(np.linalg.norm(x_ref[i])),
-                "position_std_mm": _finite_or_none(pos[i]),
-                "direction_std_deg": _finite_or_none(np.degrees(ang[i])),
-            }
-            | (
-                {"status": "undetermined: its spots cannot fix a line (held; its spots are left out)"}
-                if i in held
-                else {}
-                if np.isfinite(pos[i]) and np.isfinite(ang[i])
-                else {"status": "undetermined: its covariance is not positive (the data do not fix this laser)"}
-            )
-            for i in range(result.rig.lasers.n)
-        ],
+        "lasers": _element_uncertainty(result, cov, x_ref, pos, ang, held),
         "covariance": {
             "parameters": f"camera ({', '.join(CAMERA_NAMES)}), mirror (apex dx, dy, dz mm; axis tilt "
             "e1, e2 rad; conic constant, 0 where the shape is given), then per laser (point offset e1, e2 mm; "
             "direction tilt e1, e2 rad) with (e1, e2) the orthonormal basis of slcvjax.support.safe.orthonormal_basis "
-            "about the axis / laser direction",
+            "about the axis / laser direction"
+            + (
+                "; a line laser's plane (offset along its normal mm; normal tilt e1, e2 rad), a ring laser's cone "
+                "(apex e1, e2, along the axis mm; axis tilt e1, e2 rad; half-angle rad), each in the lasers' order"
+                if result.rig.has_sheets
+                else ""
+            ),
             "matrix": cov.tolist(),
         },
     }
     if result.box is not None:
         uncertainty["rigid_box"] = _box_json(result.box)
     return {"residuals": residuals, "uncertainty": uncertainty}
+
+
+def _point_uncertainty(i, x_ref, pos, ang, held) -> dict:
+    """``uncertainty.lasers[k]`` of point laser ``i`` (its index among the point lasers)."""
+    item = {
+        "working_point": None if i in held else x_ref[i].tolist(),
+        "working_range_mm": None if i in held else float(np.linalg.norm(x_ref[i])),
+        "position_std_mm": _finite_or_none(pos[i]),
+        "direction_std_deg": _finite_or_none(np.degrees(ang[i])),
+    }
+    if i in held:
+        item["status"] = "undetermined: its spots cannot fix a line (held; its spots are left out)"
+    elif not (np.isfinite(pos[i]) and np.isfinite(ang[i])):
+        item["status"] = "undetermined: its covariance is not positive (the data do not fix this laser)"
+    return item
+
+
+def _element_uncertainty(result: CalibrationResult, cov, x_ref, pos, ang, held) -> list[dict]:
+    """``uncertainty.lasers``: per laser in the file's order, its errors at its working range (a
+    point laser's line; a line or ring laser's sheet: its position along its normal and its normal
+    at its working point, and a cone's half-angle)."""
+    rig = result.rig
+    if not rig.kinds:
+        return [_point_uncertainty(i, x_ref, pos, ang, held) for i in range(rig.lasers.n)]
+    xs = sheet_working_points(rig, result.params.poses, result.packed)
+    sp, sn, sa = sheet_std(rig, cov, xs)
+    held_s = set(result.undetermined_sheets)
+    sp[list(held_s)], sn[list(held_s)], sa[list(held_s)] = np.nan, np.nan, np.nan
+    local, out = rig.local_index, []
+    for e, kind in enumerate(rig.element_kinds):
+        j = int(local[e])
+        if kind == "point":
+            out.append(_point_uncertainty(j, x_ref, pos, ang, held) | {"kind": "point"})
+            continue
+        item = {
+            "kind": kind,
+            "working_point": None if j in held_s else xs[j].tolist(),
+            "working_range_mm": None if j in held_s else float(np.linalg.norm(xs[j])),
+            "position_std_mm": _finite_or_none(sp[j]),
+            "direction_std_deg": _finite_or_none(np.degrees(sn[j])),
+        }
+        if kind == "cone":
+            item["half_angle_std_deg"] = _finite_or_none(np.degrees(sa[j]))
+        if j in held_s:
+            item["status"] = "undetermined: its stripes cannot fix its sheet (held; its stripes are left out)"
+        elif not np.isfinite(sp[j]):
+            item["status"] = "undetermined: its covariance is not positive (the data do not fix this laser)"
+        out.append(item)
+    return out
 
 
 def _box_json(box: dict) -> dict:
@@ -198,6 +252,16 @@ def _rig_json(rig: Rig, undetermined: tuple[int, ...] = ()) -> dict:
     return {k: doc[k] for k in ("camera", "mirror", "lasers")}
 
 
+def _staged_undetermined(st) -> tuple[int, ...]:
+    """The staged result's undetermined lasers by their index in the file."""
+    rig = st.rig
+    if not rig.kinds:
+        return tuple(st.undetermined)
+    held = [int(rig.point_elements[i]) for i in st.undetermined]
+    held += [int(rig.sheet_elements[i]) for i in st.undetermined_sheets]
+    return tuple(sorted(held))
+
+
 def to_calibration(result: CalibrationResult, obs: Observations | None = None) -> Calibration:
     """The ``slcv-calibration/1`` content of a result: the joint solution, its report, the staged
     result beside it, and the problem it solved (``problem``: :mod:`slcvjax.calibration.stored`;
@@ -214,7 +278,7 @@ def to_calibration(result: CalibrationResult, obs: Observations | None = None) -
     st = result.staged
     stages = {
         "staged": {
-            **_rig_json(st.rig, st.undetermined),
+            **_rig_json(st.rig, _staged_undetermined(st)),
             "reports": [
                 {"stage": r.name, "rms": _finite_or_none(r.rms), "unit": r.unit, "notes": r.notes} for r in st.reports
             ],
@@ -224,7 +288,7 @@ def to_calibration(result: CalibrationResult, obs: Observations | None = None) -
     if result.observations is None:
         result = dataclasses.replace(result, observations=obs)
     extra = {**rep, "stages": stages, "problem": problem_json(result)}
-    return Calibration(result.rig, board_poses, cvp, extra, result.undetermined_lasers)
+    return Calibration(result.rig, board_poses, cvp, extra, result.undetermined_elements)
 
 
 def reprojections(cal: Calibration, obs: Observations, view: int, rim_points: int = 360) -> dict:

@@ -10,6 +10,7 @@ dot          2     camera, mirror, board pose (21)                board pose
 spot         2     camera, mirror, its laser, board pose (25)     board pose
 rim pixel    1     camera, mirror (15)                             none
 chess corner 2     camera, direct-view pose (15)                  direct view
+stripe       1     camera, mirror, its sheet (6), board pose (27)  board pose
 ============ ===== ============================================== ==========
 
 Each function here takes the local tangent ``d`` first (zero at the current estimate), so that its
@@ -19,6 +20,17 @@ sensor), never a NaN.  The rim residual is the signed first-order (Sampson) dist
 pixel to the projected rim curve, in px: ``F(uv) / |dF/duv|`` with ``F = |X(uv) - C| - r``, ``X``
 the pixel's ray on the rim's plane and ``C`` the rim's centre (:func:`rim_value`,
 :func:`rim_scale`).
+
+A stripe sample's residual is likewise its signed first-order distance in px from the curve where
+its line or ring laser's sheet of light meets its board's plane, as seen through the mirror
+(:func:`stripe_value`): the sample's reflected ray (closed form) meets the board's plane at ``X``,
+and ``G(X) / |dG/duv|`` with ``G`` the sheet's equation
+(:func:`slcvjax.geometry.sheets.sheet_value`).  A sample is a point anywhere on the stripe's centre
+line, so only its distance across the curve carries information: the pixel noise across the
+stripe, with the curve's first-order geometry, is what the bound sees.  The normalisation is
+taken at the current estimate and held in the Jacobian (as the rim's is), so that the Gauss-Newton
+step is that of the distances in px.  A sheet's columns are 6 wide here (a plane's 3 first and 3
+unused).
 """
 
 import jax
@@ -27,9 +39,10 @@ from jaxtyping import Array, Bool, Float
 
 from ..geometry.camera import Camera, in_image, pixel_to_line, project
 from ..geometry.lasers import Lasers, line_plane_intersection
-from ..geometry.mirror import Mirror, project_through_mirror
+from ..geometry.mirror import Mirror, back_project, project_through_mirror
 from ..geometry.pose import Pose
 from ..geometry.rig import Rig
+from ..geometry.sheets import CONE_DOF, retract_sheet, sheet_value
 from ..observations.problem import Kind, Packed, map_rows
 from ..support.safe import safe_div, safe_norm
 from .params import N_CAM, N_CM, N_LAS
@@ -138,3 +151,42 @@ def chess_residual(d, cam, R, t, xb, px):
     c = cam.retract(d[:N_CAM])
     uv, ok = project(c, Pose(R, t).retract(d[N_CAM:]).apply(xb))
     return uv - px, ok & in_image(c, jax.lax.stop_gradient(uv))
+
+
+def stripe_value(cam: Camera, mir: Mirror, p, a, th, pose: Pose, uv: Float[Array, "2"]):
+    """``G(X(uv))`` (mm): the sample's reflected ray meets the board's plane at ``X``, weighed by
+    the sheet ``(p, a, th)``'s equation; and whether that is defined (a valid ray that meets the
+    plane ahead of the mirror)."""
+    ray = back_project(cam, mir, uv)
+    n = pose.R[:, 2]
+    den = jnp.dot(n, ray.direction)
+    lam = safe_div(jnp.dot(n, pose.t - ray.point), den, eps=1e-9)
+    x = ray.point + lam * ray.direction
+    return sheet_value(x, p, a, th), ray.valid & (jnp.abs(den) > 1e-9) & (lam > 0.0)
+
+
+def stripe_distance(cam: Camera, mir: Mirror, p, a, th, pose: Pose, uv: Float[Array, "2"]):
+    """A sample's signed first-order distance (px) from its stripe's predicted curve:
+    ``G / |dG/duv|`` (:func:`stripe_value`), the normalisation held constant in derivatives."""
+    g, ok = stripe_value(cam, mir, p, a, th, pose, uv)
+    grad = jax.jacfwd(lambda u: stripe_value(cam, mir, p, a, th, pose, u)[0])(uv)
+    norm = jax.lax.stop_gradient(safe_norm(grad))
+    return safe_div(g, norm), ok & (norm > 0.0)
+
+
+def stripe_residual(d, cam, mir, p, a, th, cone, R, t, uv):
+    """A stripe sample's residual over its local parameters ``d``: camera, mirror (15), its sheet
+    (6: a plane's 3 first), board pose (6)."""
+    c, m = camera_mirror(cam, mir, d)
+    p2, a2, th2 = retract_sheet(p, a, th, d[N_CM : N_CM + CONE_DOF], cone)
+    r, ok = stripe_distance(c, m, p2, a2, th2, Pose(R, t).retract(d[N_CM + CONE_DOF :]), uv)
+    return r[None], ok
+
+
+def stripe_residual_box(d, cam, mir, p, a, th, cone, Rv, tv, Rb, tb, uv):
+    """:func:`stripe_residual` of the rigid box model: its board pose is the box's (6) and the view's (6)."""
+    c, m = camera_mirror(cam, mir, d)
+    p2, a2, th2 = retract_sheet(p, a, th, d[N_CM : N_CM + CONE_DOF], cone)
+    pose = box_board_pose(d[N_CM + CONE_DOF :], Rv, tv, Rb, tb)
+    r, ok = stripe_distance(c, m, p2, a2, th2, pose, uv)
+    return r[None], ok

@@ -241,6 +241,19 @@ class CalibrationResult:
     observations: Observations | None = None
     # the settings it ran with
     options: CalibrationOptions = DEFAULT_OPTIONS
+    # line and ring lasers whose stripes cannot fix their sheet (their index among the rig's
+    # sheets): held at a placeholder, their stripes left out (fit_sheets)
+    undetermined_sheets: tuple[int, ...] = ()
+
+    @property
+    def undetermined_elements(self) -> tuple[int, ...]:
+        """Every undetermined laser by its index in the file (point lasers' and sheets' alike)."""
+        rig = self.rig
+        if not rig.kinds:
+            return tuple(self.undetermined_lasers)
+        held = [int(rig.point_elements[i]) for i in self.undetermined_lasers]
+        held += [int(rig.sheet_elements[i]) for i in self.undetermined_sheets]
+        return tuple(sorted(held))
 
     @property
     def rig(self) -> Rig:

@@ -216,6 +216,6 @@ def rigid_refine(res: CalibrationResult, obs: Observations, group: list[str]) ->
         passes=tuple(passes),
         repairs=tuple(repairs),
         timings=timings,
-        kind_sigma=dict(zip(KIND_NAMES, noise.sigma.tolist(), strict=True)),
+        kind_sigma=dict(zip(KIND_NAMES, noise.sigma.tolist(), strict=False)),
         box=box,
     )

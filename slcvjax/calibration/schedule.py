@@ -27,6 +27,7 @@ import numpy as np
 
 from ..observations.problem import (
     KIND_NAMES,
+    Kind,
     stack_poses,
     unstack_poses,
 )
@@ -53,6 +54,7 @@ from .passes import (
 )
 from .repairs import leave_out, predicted_fit, relabel_spots, take_spot_records, use_all_but
 from .result import CalibrationResult
+from .sheet_fit import fit_sheets
 from .staged import board_poses
 from .trial import Trial, start_trial
 
@@ -177,11 +179,12 @@ class _Lockstep:
             float(tr.scale),
             tr.passes,
             {"staged_s": tr.t_staged, "total_s": time.perf_counter() - tr.t0},
-            dict(zip(KIND_NAMES, noise.sigma.tolist(), strict=True)),
+            dict(zip(KIND_NAMES, noise.sigma.tolist(), strict=False)),
             tr.repairs,
             undetermined_lasers=tr.undetermined,
             observations=tr.obs,
             options=self.options,
+            undetermined_sheets=tr.undetermined_sheets,
         )
 
 
@@ -216,10 +219,19 @@ def _refit_lasers(d: _Lockstep) -> None:
     spots cannot fix a line held (undetermined)."""
     for i, tr in enumerate(d.trials):
         p = tr.params
-        fit = fit_lasers(p.rig.camera, p.rig.mirror, tr.pk, unstack_poses(p.poses), tr.obs.n_lasers, policy=d.policy)
-        params = Params(p.rig.with_lasers(fit.lasers), p.poses, p.chess)
-        masks = make_masks(params, tr.freeze, tr.estimate, held_lasers=fit.held)
-        tr = dataclasses.replace(tr, params=params, undetermined=fit.held, masks=masks)
+        poses = unstack_poses(p.poses)
+        fit = fit_lasers(p.rig.camera, p.rig.mirror, tr.pk, poses, tr.obs.n_points, policy=d.policy)
+        rig = p.rig.with_lasers(fit.lasers)
+        held_sheets = tr.undetermined_sheets
+        if rig.has_sheets:
+            sf = fit_sheets(rig.camera, rig.mirror, tr.pk, poses, rig.sheets.kinds, start=rig.sheets)
+            rig, held_sheets = rig.with_sheets(sf.sheets), sf.held
+        params = Params(rig, p.poses, p.chess)
+        masks = make_masks(params, tr.freeze, tr.estimate, held_lasers=fit.held, held_sheets=held_sheets)
+        tr = dataclasses.replace(tr, params=params, undetermined=fit.held, masks=masks, undetermined_sheets=held_sheets)
+        if held_sheets and tr.pk.has_stripes:  # a sheet its stripes cannot fix: held, its samples go
+            n_t = int(tr.pk.counts[Kind.STRIPE])
+            tr = tr.using(tr.pk.select_stripes(~np.isin(np.asarray(tr.pk.stripe_sheet)[:n_t], held_sheets)))
         d.trials[i] = relabel_spots(tr, fit)
 
 

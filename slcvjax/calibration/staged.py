@@ -30,6 +30,7 @@ from ..geometry.lasers import Lasers
 from ..geometry.mirror import Mirror, back_project, mirror_of_shape
 from ..geometry.pose import Pose, so3_exp
 from ..geometry.rig import Rig
+from ..geometry.sheets import Sheets
 from ..observations.formats import Observations, SpotObs, ViewObs, shape_missing
 from ..observations.problem import (
     POSE_LADDER,
@@ -45,6 +46,7 @@ from ..support.persist import PersistentJit
 from .base import CalibrationError, StageReport, rays_with_pixel_metric
 from .laser_fit import fit_lasers
 from .options import DEFAULT_POLICY, RobustPolicy
+from .sheet_fit import fit_sheets
 
 _CV_LOCK = threading.Lock()
 
@@ -389,10 +391,15 @@ class Staged:
     reports: list[StageReport]
     packed: Packed | None = None
     undetermined: tuple[int, ...] = ()  # lasers whose spots cannot fix a line (see fit_lasers)
+    sheets: Sheets | None = None  # the line and ring lasers (see fit_sheets)
+    kinds: tuple[str, ...] = ()  # every laser's kind in order (empty: point lasers only)
+    undetermined_sheets: tuple[int, ...] = ()  # sheets whose stripes cannot fix them (see fit_sheets)
 
     @property
     def rig(self) -> Rig:
         """The staged camera, mirror and lasers as one rig."""
+        if self.kinds:
+            return Rig.of_elements(self.camera, self.mirror, self.lasers, self.sheets, self.kinds)
         return Rig(self.camera, self.mirror, self.lasers)
 
 
@@ -443,8 +450,15 @@ def staged(
         obs, n_set = assign_spot_boards(obs, camera, mirror, view_poses)
         pk = pack(obs)
         rep_p.notes.append(f"{n_set} of {n_open} spots without a board put on the first board plane their ray meets")
-    fit = fit_lasers(camera, mirror, pk, poses, obs.n_lasers, policy=policy)
-    return Staged(camera, mirror, fit.lasers, poses, chess, reports + [rep_m, rep_p, fit.report], pk, fit.held)
+    fit = fit_lasers(camera, mirror, pk, poses, obs.n_points, policy=policy)
+    reports += [rep_m, rep_p, fit.report]
+    if not obs.n_sheets:
+        return Staged(camera, mirror, fit.lasers, poses, chess, reports, pk, fit.held)
+    kinds = obs.element_kinds
+    sf = fit_sheets(camera, mirror, pk, poses, tuple(k for k in kinds if k != "point"))
+    return Staged(
+        camera, mirror, fit.lasers, poses, chess, reports + [sf.report], pk, fit.held, sf.sheets, kinds, sf.held
+    )
 
 
 def assign_spot_boards(
@@ -489,5 +503,5 @@ def assign_spot_boards(
                 s = SpotObs(s.laser, best, s.pixel)
                 n_set += 1
             spots.append(s)
-        views.append(ViewObs(v.name, v.boards, spots, v.rim))
+        views.append(ViewObs(v.name, v.boards, spots, v.rim, v.stripes))
     return dataclasses.replace(obs, views=views), n_set

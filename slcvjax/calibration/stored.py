@@ -273,7 +273,7 @@ def load_result(path: str | os.PathLike) -> CalibrationResult:
     box = _box(unc["rigid_box"]) if unc.get("rigid_box") is not None else None
     if box is None:
         cov, noise = covariance_and_noise(params, packed, masks, loss, scale)
-        kind_sigma = dict(zip(KIND_NAMES, noise.sigma.tolist(), strict=True))
+        kind_sigma = dict(zip(KIND_NAMES, noise.sigma.tolist(), strict=False))
     else:
         c = prob["covariance"]
         cov = Covariance(

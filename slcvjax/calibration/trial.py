@@ -63,6 +63,8 @@ class Trial:
     # the problem before spots were set aside by their lines (:func:`relabel_spots`), and
     # which of its rows were: the outlier check looks at them again on the final geometry
     set_aside: tuple[Packed, np.ndarray] | None = None
+    # line and ring lasers held because their stripes cannot fix them (their index among the sheets)
+    undetermined_sheets: tuple[int, ...] = ()
 
     @property
     def policy(self) -> RobustPolicy:
@@ -71,7 +73,8 @@ class Trial:
     def using(self, pk: Packed) -> "Trial":
         """The trial solving the problem ``pk`` from now on (the same poses; fewer or relabelled
         observations)."""
-        layout = Layout.of(pk, fine=self.fine, n_lasers=self.params.rig.lasers.n)
+        rig = self.params.rig
+        layout = Layout.of(pk, fine=self.fine, n_lasers=rig.lasers.n, sheet_dim=rig.sheet_dim)
         return dataclasses.replace(self, pk=pk, layout=layout, arr=layout.pad_packed(pk))
 
     def with_pass(self, joint: JointPass) -> "Trial":
@@ -109,13 +112,16 @@ def start_trial(obs, camera, options: CalibrationOptions, t0, fine: bool = False
     else:
         chess_stack = stack_poses(chess)
     params = Params(st.rig, stack_poses(st.poses), chess_stack)
-    masks = make_masks(params, set(freeze), estimate, held_lasers=st.undetermined)
+    masks = make_masks(params, set(freeze), estimate, held_lasers=st.undetermined, held_sheets=st.undetermined_sheets)
     mask_a = make_masks(params, set(freeze) | {"lasers"}, estimate)
     if st.undetermined and "lasers" in freeze:  # no refit: their spots go now
         n_d, n_s = int(pk.counts[Kind.DOT]), int(pk.counts[Kind.SPOT])
         held = np.isin(np.asarray(pk.spot_laser)[:n_s], st.undetermined)
         pk = pk.select(np.ones(n_d, bool), ~held)
-    layout = Layout.of(pk, fine=fine, n_lasers=params.rig.lasers.n)
+    if st.undetermined_sheets:  # their stripes cannot fix them: they are held and their samples go
+        n_t = int(pk.counts[Kind.STRIPE])
+        pk = pk.select_stripes(~np.isin(np.asarray(pk.stripe_sheet)[:n_t], st.undetermined_sheets))
+    layout = Layout.of(pk, fine=fine, n_lasers=params.rig.lasers.n, sheet_dim=params.rig.sheet_dim)
     return Trial(
         obs,
         t0,
@@ -132,4 +138,5 @@ def start_trial(obs, camera, options: CalibrationOptions, t0, fine: bool = False
         pk,
         layout,
         layout.pad_packed(pk),
+        undetermined_sheets=st.undetermined_sheets,
     )

@@ -83,7 +83,7 @@ def residual_vectors(result: CalibrationResult) -> dict:
     problem padded to its shape bucket).
     """
     pk = result.packed
-    layout = Layout.of(pk, n_lasers=result.rig.lasers.n)
+    layout = Layout.of(pk, n_lasers=result.rig.lasers.n, sheet_dim=result.rig.sheet_dim)
     r, obs, kind_r, use = (np.asarray(a) for a in _rows_jit(pad_params(layout, result.params), layout.pad_packed(pk)))
     n_pad = int(sum(layout.cap[:4]))
     vector = np.full((n_pad, 2), np.nan)

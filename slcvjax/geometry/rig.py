@@ -13,6 +13,7 @@ from .camera import Camera, in_image, project
 from .lasers import Lasers, line_plane_intersection
 from .mirror import Mirror, project_through_mirror
 from .pose import Pose
+from .sheets import KIND_DOF, Sheets
 
 CAMERA_DOF = 9
 MIRROR_DOF = 6  # the pose (vertex 3, axis tilt 2) and one of the shape (see the mirrors' retract)
@@ -70,12 +71,21 @@ def tangent_layout(element_dofs) -> TangentLayout:
     return TangentLayout(CAMERA_COLUMNS, slice(CAMERA_DOF, CAMERA_DOF + MIRROR_DOF), tuple(elements))
 
 
+ELEMENT_DOF = {"point": Lasers.DOF, **KIND_DOF}  # unknowns per structured-light element kind
+
+
 class Rig(eqx.Module):
-    """Everything calibrated about the sensor: camera, mirror and lasers.
+    """Everything calibrated about the sensor: camera, mirror and its structured-light elements.
+
+    The elements are the rig's lasers in the calibration file's order (``lasers[i]``): point
+    lasers (beams, :class:`Lasers`) and sheets of light (line lasers' planes and ring lasers'
+    cones, :class:`slcvjax.geometry.sheets.Sheets`).  ``kinds`` names each element's kind in
+    that order (empty: every element a point laser); ``lasers`` holds the point lasers and
+    ``sheets`` the sheets, each in the order they appear.
 
     ``tangent_dim`` is ``9 + 6`` plus each element's unknowns (:attr:`layout`); :meth:`retract`
     takes a flat increment in the order camera (9), mirror (6: vertex, axis tilt, shape), then
-    the elements, each its own columns (a point laser 4).
+    the elements in order, each its own columns (a point laser 4, a plane 3, a cone 6).
     A camera-only rig (:meth:`camera_only`: a plain camera's calibration) has no mirror and
     no lasers; the functions that look through the mirror need one.
     """
@@ -83,20 +93,97 @@ class Rig(eqx.Module):
     camera: Camera
     mirror: Mirror | None
     lasers: Lasers
+    sheets: Sheets | None = None
+    kinds: tuple[str, ...] = eqx.field(static=True, default=())
+
+    def __check_init__(self):
+        if not self.kinds:
+            if self.sheets is not None and self.sheets.n:
+                raise ValueError("Rig: sheets of light need the elements' kinds in order")
+            return
+        n_p = self.lasers.n if self.lasers is not None else 0
+        n_s = self.sheets.n if self.sheets is not None else 0
+        if sum(k == "point" for k in self.kinds) != n_p or len(self.kinds) != n_p + n_s:
+            raise ValueError(f"Rig: kinds {self.kinds} do not match {n_p} point lasers and {n_s} sheets")
+        if tuple(k for k in self.kinds if k != "point") != (self.sheets.kinds if n_s else ()):
+            raise ValueError(f"Rig: kinds {self.kinds} do not list the sheets' kinds in their order")
 
     @classmethod
     def camera_only(cls, camera: Camera) -> "Rig":
         """The rig of a plain camera: no mirror, no lasers."""
         return cls(camera, None, Lasers.create(np.zeros((0, 3)), np.zeros((0, 3))))
 
+    @classmethod
+    def of_elements(cls, camera: Camera, mirror, lasers: Lasers, sheets: Sheets | None, kinds) -> "Rig":
+        """A rig from its point lasers and sheets, and every element's kind in order (a rig of
+        point lasers alone keeps the short form, with no ``kinds``)."""
+        kinds = tuple(kinds)
+        if all(k == "point" for k in kinds):
+            return cls(camera, mirror, lasers)
+        return cls(camera, mirror, lasers, sheets, kinds)
+
+    @property
+    def element_kinds(self) -> tuple[str, ...]:
+        """Each element's kind in order (``point``, ``plane`` or ``cone``)."""
+        if self.kinds:
+            return self.kinds
+        return ("point",) * (self.lasers.n if self.lasers is not None else 0)
+
+    @property
+    def n_elements(self) -> int:
+        return len(self.element_kinds)
+
+    @property
+    def has_sheets(self) -> bool:
+        return self.sheets is not None and self.sheets.n > 0
+
+    @property
+    def sheet_dim(self) -> int:
+        """The tangent columns of the rig's sheets (3 per plane, 6 per cone)."""
+        return int(sum(self.sheets.dofs)) if self.has_sheets else 0
+
+    @property
+    def point_elements(self) -> np.ndarray:
+        """(P,) int64: the element index of each point laser."""
+        return np.asarray([i for i, k in enumerate(self.element_kinds) if k == "point"], dtype=np.int64)
+
+    @property
+    def sheet_elements(self) -> np.ndarray:
+        """(S,) int64: the element index of each sheet."""
+        return np.asarray([i for i, k in enumerate(self.element_kinds) if k != "point"], dtype=np.int64)
+
+    @property
+    def local_index(self) -> np.ndarray:
+        """(N,) int64: each element's index among the elements of its own collection (a point
+        laser's in :attr:`lasers`, a sheet's in :attr:`sheets`)."""
+        out, counts = [], {"point": 0, "sheet": 0}
+        for k in self.element_kinds:
+            key = "point" if k == "point" else "sheet"
+            out.append(counts[key])
+            counts[key] += 1
+        return np.asarray(out, dtype=np.int64)
+
     def with_lasers(self, lasers: Lasers) -> "Rig":
-        """This rig's camera and mirror with other lasers."""
-        return Rig(self.camera, self.mirror, lasers)
+        """This rig's camera, mirror and sheets with other point lasers (more of them are added
+        as the last elements, fewer drop the last point lasers)."""
+        if not self.kinds:
+            return Rig(self.camera, self.mirror, lasers)
+        kinds, n_p = list(self.kinds), sum(k == "point" for k in self.kinds)
+        while n_p > lasers.n:
+            last = len(kinds) - 1 - kinds[::-1].index("point")
+            del kinds[last]
+            n_p -= 1
+        kinds += ["point"] * (lasers.n - n_p)
+        return Rig(self.camera, self.mirror, lasers, self.sheets, tuple(kinds))
+
+    def with_sheets(self, sheets: Sheets) -> "Rig":
+        """This rig with other sheets of the same kinds."""
+        return Rig(self.camera, self.mirror, self.lasers, sheets, self.kinds)
 
     @property
     def layout(self) -> TangentLayout:
         """Where the camera, the mirror and each element sit in the tangent."""
-        return tangent_layout((self.lasers.DOF,) * self.lasers.n)
+        return tangent_layout(tuple(ELEMENT_DOF[k] for k in self.element_kinds))
 
     @property
     def tangent_dim(self) -> int:
@@ -104,11 +191,21 @@ class Rig(eqx.Module):
 
     def retract(self, delta: Float[Array, " d"]) -> "Rig":
         c, m = CAMERA_DOF, CAMERA_DOF + MIRROR_DOF
-        return Rig(
-            self.camera.retract(delta[:c]),
-            None if self.mirror is None else self.mirror.retract(delta[c:m]),
-            self.lasers.retract(delta[m:].reshape(-1, self.lasers.DOF)),
-        )
+        camera = self.camera.retract(delta[:c])
+        mirror = None if self.mirror is None else self.mirror.retract(delta[c:m])
+        if not self.kinds:
+            return Rig(camera, mirror, self.lasers.retract(delta[m:].reshape(-1, self.lasers.DOF)))
+        lay = self.layout
+        pts = [lay.elements[i] for i in self.point_elements]
+        lasers = self.lasers
+        if pts:
+            idx = np.asarray([np.arange(sl.start, sl.stop) for sl in pts])
+            lasers = lasers.retract(delta[idx])
+        sheets = self.sheets
+        if self.has_sheets:
+            idx = np.concatenate([np.arange(lay.elements[i].start, lay.elements[i].stop) for i in self.sheet_elements])
+            sheets = sheets.retract(delta[idx])
+        return Rig(camera, mirror, lasers, sheets, self.kinds)
 
 
 # The projections below are compiled (jax.jit): called op by op, as a script or the pipeline's

@@ -23,6 +23,7 @@ from ..geometry.lasers import Lasers
 from ..geometry.mirror import mirror_of_shape, shape_json
 from ..geometry.pose import Pose
 from ..geometry.rig import Rig
+from ..geometry.sheets import Sheets
 
 OBSERVATIONS_FORMAT = "slcv-observations/1"
 CALIBRATION_FORMAT = "slcv-calibration/1"
@@ -300,13 +301,26 @@ class SpotObs:
 
 
 @dataclass
+class StripeObs:
+    """One laser stripe: the laser (a line or ring laser's index in the file), the board whose
+    plane it lies on (or None), and its sub-pixel centre-line samples (M, 2) px, each an
+    independent measurement."""
+
+    laser: int
+    board: str | None
+    pixels: np.ndarray
+
+
+@dataclass
 class ViewObs:
-    """A catadioptric view: per board the pixels (M, 2) and seen mask (M,), spots, rim pixels (R, 2)."""
+    """A catadioptric view: per board the pixels (M, 2) and seen mask (M,), spots, rim pixels
+    (R, 2), and the stripes of its line and ring lasers."""
 
     name: str
     boards: dict[str, tuple[np.ndarray, np.ndarray]]
     spots: list[SpotObs]
     rim: np.ndarray
+    stripes: list[StripeObs] = field(default_factory=list)
 
 
 @dataclass
@@ -330,8 +344,35 @@ class Observations:
     # each typed board's ``type`` and fields (``slcvjax.observations.targets.read_board``'s spec);
     # a board absent here is ``dots``, given by its points alone
     board_types: dict[str, dict] = field(default_factory=dict)
+    # each laser's kind (``point``, ``plane``, ``cone``) in order; empty: every laser a point laser
+    laser_kinds: tuple[str, ...] = ()
+
+    @property
+    def element_kinds(self) -> tuple[str, ...]:
+        """Each laser's kind in order (``point`` where the file names none)."""
+        return tuple(self.laser_kinds) if self.laser_kinds else ("point",) * self.n_lasers
+
+    @property
+    def n_points(self) -> int:
+        """The number of point lasers (spots' lasers)."""
+        return sum(k == "point" for k in self.element_kinds)
+
+    @property
+    def n_sheets(self) -> int:
+        """The number of line and ring lasers (stripes' lasers)."""
+        return self.n_lasers - self.n_points
+
+    def local_index(self) -> np.ndarray:
+        """(n_lasers,) int64: each laser's index among the lasers of its own collection (point
+        lasers, or line and ring lasers), see :attr:`slcvjax.geometry.rig.Rig.local_index`."""
+        kinds = self.element_kinds
+        return np.asarray(
+            [sum((k == "point") == (kinds[i] == "point") for k in kinds[:i]) for i in range(len(kinds))],
+            dtype=np.int64,
+        )
 
 
+LASER_KINDS = ("point", "plane", "cone")
 PROJECTIONS = ("perspective", "telecentric")
 
 
@@ -480,6 +521,18 @@ def _observations_of(ctx: ReadContext, doc: Any) -> Observations:
         px, seen = _pixels(ctx, ctx.get(v, "pixels", where), len(pts), f"{where}.pixels")
         cal_views.append(CalibrationViewObs(name, board, px, seen))
 
+    laser_kinds: tuple[str, ...] = ()
+    kinds_doc = ctx.list_of(doc, "laser_kinds", "", optional=True)
+    if kinds_doc:
+        if len(kinds_doc) != n_lasers:
+            ctx.fail("laser_kinds", f"expected {n_lasers} kinds (n_lasers), got {len(kinds_doc)}")
+        for j, k in enumerate(kinds_doc):
+            if k not in LASER_KINDS:
+                ctx.fail(f"laser_kinds[{j}]", f"expected one of {', '.join(LASER_KINDS)}, got {json.dumps(k)[:40]}")
+        if any(k != "point" for k in kinds_doc):
+            laser_kinds = tuple(kinds_doc)
+    kinds = laser_kinds or ("point",) * n_lasers
+
     views = []
     for i, v in enumerate(ctx.list_of(doc, "views", "")):
         where = f"views[{i}]"
@@ -496,12 +549,34 @@ def _observations_of(ctx: ReadContext, doc: Any) -> Observations:
             board = ctx.get(s, "board", sw, optional=True)
             if board is not None:
                 board_points(board, f"{sw}.board")
+            if kinds[laser] != "point":
+                ctx.fail(
+                    f"{sw}.laser", f"laser {laser} is a {kinds[laser]} laser (laser_kinds): it draws stripes, not spots"
+                )
             spots.append(SpotObs(laser, board, ctx.vector(ctx.get(s, "pixel", sw), 2, f"{sw}.pixel")))
+        stripes = []
+        for j, s in enumerate(ctx.list_of(v, "stripes", where, optional=True)):
+            sw = f"{where}.stripes[{j}]"
+            laser = ctx.integer(ctx.get(s, "laser", sw), f"{sw}.laser", lo=0, hi=n_lasers)
+            if kinds[laser] == "point":
+                ctx.fail(
+                    f"{sw}.laser",
+                    f"laser {laser} is a point laser: a stripe needs a line or ring laser (name each laser's kind "
+                    "in laser_kinds: point, plane or cone)",
+                )
+            board = ctx.get(s, "board", sw, optional=True)
+            if board is not None:
+                board_points(board, f"{sw}.board")
+            pix_doc = ctx.list_of(s, "pixels", sw)
+            pix = np.zeros((len(pix_doc), 2))
+            for k, p in enumerate(pix_doc):
+                pix[k] = ctx.vector(p, 2, f"{sw}.pixels[{k}]")
+            stripes.append(StripeObs(laser, board, pix))
         rim_doc = ctx.list_of(v, "rim", where, optional=True)
         rim = np.zeros((len(rim_doc), 2))
         for j, p in enumerate(rim_doc):
             rim[j] = ctx.vector(p, 2, f"{where}.rim[{j}]")
-        views.append(ViewObs(name, per_board, spots, rim))
+        views.append(ViewObs(name, per_board, spots, rim, stripes))
 
     # fields kept in ``extra`` that a calibration reads: checked here, kept as they are
     for i, b in enumerate(ctx.list_of(doc, "rigid_boards", "", optional=True)):
@@ -520,10 +595,11 @@ def _observations_of(ctx: ReadContext, doc: Any) -> Observations:
         "calibration_views",
         "views",
         "camera_projection",
+        "laser_kinds",
     }
     extra = {k: v for k, v in doc.items() if k not in known}
     return Observations(
-        (w, h), radius, height, n_lasers, boards, cal_views, views, extra, shape, projection, board_types
+        (w, h), radius, height, n_lasers, boards, cal_views, views, extra, shape, projection, board_types, laser_kinds
     )
 
 
@@ -579,6 +655,7 @@ def observations_to_json(obs: Observations) -> dict:
         "image_size": [int(obs.image_size[0]), int(obs.image_size[1])],
         "mirror_shape": obs.mirror_shape or {"kind": "cone", "radius": obs.mirror_radius, "height": obs.mirror_height},
         "n_lasers": int(obs.n_lasers),
+        **({"laser_kinds": list(obs.laser_kinds)} if obs.laser_kinds else {}),
         **({} if obs.camera_projection == "perspective" else {"camera_projection": obs.camera_projection}),
         "boards": {
             n: {**obs.board_types.get(n, {}), "points": np.asarray(p, float).tolist()} for n, p in obs.boards.items()
@@ -595,6 +672,16 @@ def observations_to_json(obs: Observations) -> dict:
                     for s in v.spots
                 ],
                 "rim": np.asarray(v.rim, float).reshape(-1, 2).tolist(),
+                **(
+                    {
+                        "stripes": [
+                            {"laser": int(s.laser), "board": s.board, "pixels": np.asarray(s.pixels, float).tolist()}
+                            for s in v.stripes
+                        ]
+                    }
+                    if v.stripes
+                    else {}
+                ),
             }
             for v in obs.views
         ],
@@ -650,12 +737,41 @@ def _unit(ctx: ReadContext, v: np.ndarray, where: str) -> np.ndarray:
 
 
 UNDETERMINED_LASER = "undetermined: the data do not fix this laser's line (see uncertainty.lasers)"
+UNDETERMINED_SHEET = "undetermined: the data do not fix this laser's sheet of light (see uncertainty.lasers)"
+# each kind's fields in ``lasers[i]`` (a point laser's written without ``kind``, as before kinds existed)
+SHEET_FIELDS = {"plane": ("point", "normal"), "cone": ("apex", "axis", "half_angle_deg")}
+
+
+def _lasers_json(rig: Rig, undetermined) -> list:
+    """``lasers``: each element of ``rig`` in order, by kind (see DESIGN section 3)."""
+    las, out = rig.lasers, []
+    pts, dirs = np.asarray(las.points, float), np.asarray(las.directions, float)
+    sheets = rig.sheets
+    local = rig.local_index
+    for i, kind in enumerate(rig.element_kinds):
+        j = int(local[i])
+        if kind == "point":
+            if i in undetermined:
+                out.append({"point": None, "direction": None, "status": UNDETERMINED_LASER})
+            else:
+                out.append({"point": pts[j].tolist(), "direction": dirs[j].tolist()})
+            continue
+        if i in undetermined:
+            out.append({"kind": kind, **dict.fromkeys(SHEET_FIELDS[kind]), "status": UNDETERMINED_SHEET})
+            continue
+        p, a = np.asarray(sheets.apex[j], float).tolist(), np.asarray(sheets.axis[j], float).tolist()
+        if kind == "plane":
+            out.append({"kind": "plane", "point": p, "normal": a})
+        else:
+            th = float(np.degrees(float(sheets.half_angle[j])))
+            out.append({"kind": "cone", "apex": p, "axis": a, "half_angle_deg": th})
+    return out
 
 
 def calibration_to_json(cal: Calibration) -> dict:
     """The ``slcv-calibration/1`` document of a :class:`Calibration` (camera only where the rig has no mirror)."""
     rig = cal.rig
-    cam, mir, las = rig.camera, rig.mirror, rig.lasers
+    cam, mir = rig.camera, rig.mirror
     doc: dict[str, Any] = {
         "format": CALIBRATION_FORMAT,
         "camera": {
@@ -676,14 +792,7 @@ def calibration_to_json(cal: Calibration) -> dict:
                 "apex": np.asarray(mir.apex, float).tolist(),
                 "axis": np.asarray(mir.axis, float).tolist(),
             },
-            "lasers": [
-                {"point": None, "direction": None, "status": UNDETERMINED_LASER}
-                if i in cal.undetermined_lasers
-                else {"point": p.tolist(), "direction": d.tolist()}
-                for i, (p, d) in enumerate(
-                    zip(np.asarray(las.points, float), np.asarray(las.directions, float), strict=True)
-                )
-            ],
+            "lasers": _lasers_json(rig, cal.undetermined_lasers),
             "board_poses": [{b: _pose_json(p) for b, p in view.items()} for view in cal.board_poses],
         }
     )
@@ -741,7 +850,35 @@ def _calibration_of(ctx: ReadContext, doc: Any) -> Calibration:
         mirror = mirror_of_shape(shape, apex, axis, radius, height)
 
     pts, dirs, undetermined = [], [], []
+    kinds, s_kind, s_apex, s_axis, s_angle = [], [], [], [], []
     for i, las in enumerate(ctx.list_of(doc, "lasers", "", optional=True)):
+        kind = las.get("kind", "point") if isinstance(las, dict) else "point"
+        if kind is None:
+            kind = "point"
+        if kind not in LASER_KINDS:
+            ctx.fail(f"lasers[{i}].kind", f"expected one of {', '.join(LASER_KINDS)}, got {json.dumps(kind)[:40]}")
+        kinds.append(kind)
+        if kind != "point":
+            where = f"lasers[{i}]"
+            fields = SHEET_FIELDS[kind]
+            s_kind.append(kind)
+            if all(las.get(f, 0) is None for f in fields):
+                undetermined.append(i)  # a placeholder sheet that nothing uses
+                s_apex.append(np.zeros(3))
+                s_axis.append(np.array([0.0, 0.0, 1.0]))
+                s_angle.append(np.pi / 2 if kind == "plane" else np.pi / 4)
+                continue
+            s_apex.append(ctx.vector(ctx.get(las, fields[0], where), 3, f"{where}.{fields[0]}"))
+            ax = ctx.vector(ctx.get(las, fields[1], where), 3, f"{where}.{fields[1]}")
+            s_axis.append(_unit(ctx, ax, f"{where}.{fields[1]}"))
+            if kind == "cone":
+                th = ctx.number(ctx.get(las, "half_angle_deg", where), f"{where}.half_angle_deg")
+                if not 0.0 < th < 180.0:
+                    ctx.fail(f"{where}.half_angle_deg", f"must lie strictly between 0 and 180, got {th:g}")
+                s_angle.append(np.radians(th))
+            else:
+                s_angle.append(np.pi / 2)
+            continue
         if isinstance(las, dict) and las.get("point", 0) is None and las.get("direction", 0) is None:
             undetermined.append(i)  # the data did not fix it: a placeholder line that nothing uses
             pts.append(np.zeros(3))
@@ -766,4 +903,8 @@ def _calibration_of(ctx: ReadContext, doc: Any) -> Calibration:
         ]
     known = {"format", "camera", "mirror", "lasers", "board_poses", "calibration_view_poses"}
     extra = {k: v for k, v in doc.items() if k not in known}
-    return Calibration(Rig(cam, mirror, lasers), board_poses, cvp, extra, tuple(undetermined))
+    sheets = (
+        Sheets.create(s_kind, np.reshape(s_apex, (-1, 3)), np.reshape(s_axis, (-1, 3)), s_angle) if s_kind else None
+    )
+    rig = Rig.of_elements(cam, mirror, lasers, sheets, kinds)
+    return Calibration(rig, board_poses, cvp, extra, tuple(undetermined))

@@ -43,27 +43,47 @@ class Kind(enum.IntEnum):
     SPOT = 1  # a laser spot seen through the mirror
     RIM = 2  # a pixel of the mirror's rim
     CHESS = 3  # a chessboard corner seen directly (or through the mirror, with no lasers)
+    STRIPE = 4  # a sample of a line or ring laser's stripe seen through the mirror
 
     @property
     def label(self) -> str:
-        """The kind's name in files and reports (``dot``, ``spot``, ``rim``, ``chess``)."""
+        """The kind's name in files and reports (``dot``, ``spot``, ``rim``, ``chess``, ``stripe``)."""
         return self.name.lower()
 
     @property
     def robust(self) -> bool:
-        """Whether the robust loss applies: dots and spots (outliers are labelled points); the
-        rim and the corners stay plain least squares (a robust rim made the lasers from
-        rendered images worse in ``benchmarks/images_vs_file.py``)."""
-        return self in (Kind.DOT, Kind.SPOT)
+        """Whether the robust loss applies: dots, spots and stripe samples (outliers are
+        labelled points); the rim and the corners stay plain least squares (a robust rim made
+        the lasers from rendered images worse in ``benchmarks/images_vs_file.py``)."""
+        return self in (Kind.DOT, Kind.SPOT, Kind.STRIPE)
+
+    @property
+    def rows(self) -> int:
+        """Scalar residual rows per observation: 2 for a pixel, 1 for a distance from a curve
+        (a rim pixel, a stripe sample)."""
+        return 1 if self in (Kind.RIM, Kind.STRIPE) else 2
 
 
 KIND_NAMES = tuple(k.label for k in Kind)
+
+
+def kinds_of(pk: "Packed") -> tuple[Kind, ...]:
+    """The kinds a problem has rows for: dots, spots, rim, corners, and stripe samples where it
+    has stripes (its per-kind arrays, such as its noise sigmas, run over these)."""
+    return tuple(Kind)[: np.shape(pk.counts)[0]]
+
+
 ROBUST_KINDS = tuple(k.robust for k in Kind)
 
 
-def kind_weights(weight=None) -> Float[Array, "4"]:
-    """Each :class:`Kind`'s weight in a solve, as an array (``None``: every kind 1; 0 drops a kind)."""
-    return jnp.ones(len(Kind)) if weight is None else jnp.asarray(weight, dtype=float)
+def kind_weights(weight=None) -> Float[Array, "5"]:
+    """Each :class:`Kind`'s weight in a solve, as an array (``None``: every kind 1; 0 drops a
+    kind).  Four weights (dots, spots, rim, corners) give the stripe samples the spots' weight:
+    both are the structured light."""
+    if weight is None:
+        return jnp.ones(len(Kind))
+    w = jnp.asarray(weight, dtype=float)
+    return jnp.concatenate([w, w[1:2]]) if w.shape == (4,) else w
 
 
 class Packed(eqx.Module):
@@ -80,8 +100,9 @@ class Packed(eqx.Module):
         chess_pose: (C,) index into the direct-view poses of each chessboard corner.
         chess_points: (C, 3) the corner in its board's frame.
         chess_pixels: (C, 2) its observed pixel.
-        counts: (4,) how many dots, spots, rim pixels and corners are real; the rows after
-            them are padding (see the module docstring).
+        counts: (4,) how many dots, spots, rim pixels and corners are real, and (5,) the
+            stripe samples where the problem has stripes; the rows after them are padding (see
+            the module docstring).
         pose_keys: ``(view index, board name)`` of each board pose (static).
         chess_keys: index of the calibration view of each direct-view pose (static).
         dot_src: ``(view index, board name, dot index)`` of each dot row (static; empty
@@ -93,6 +114,15 @@ class Packed(eqx.Module):
         pair_box: with ``pair_block``, each board pose's board in the box (an index into
             ``Params.box``; the length of ``Params.box`` for the gauge board and the boards outside
             the box: no box pose, the identity).
+        stripe_pose: None (no stripes), or (T,) the board pose of each stripe sample's plane.
+        stripe_sheet: (T,) the sample's line or ring laser, its index among the rig's sheets
+            (:attr:`slcvjax.geometry.rig.Rig.sheets`).
+        stripe_pixels: (T, 2) the sample's pixel on the stripe's centre line.
+        stripe_src: ``(view index, stripe index in the view, sample index)`` of each stripe row
+            (static; empty where the rows come from elsewhere than :func:`pack`).
+
+    ``spot_laser`` is a spot's laser among the rig's point lasers (``Rig.lasers``), which in a
+    rig of point lasers alone is its index in the file.
     """
 
     dot_pose: Int[Array, " D"]
@@ -112,6 +142,15 @@ class Packed(eqx.Module):
     spot_src: tuple = eqx.field(static=True, default=())
     pair_block: Int[Array, " P"] | None = None
     pair_box: Int[Array, " P"] | None = None
+    stripe_pose: Int[Array, " T"] | None = None
+    stripe_sheet: Int[Array, " T"] | None = None
+    stripe_pixels: Float[Array, "T 2"] | None = None
+    stripe_src: tuple = eqx.field(static=True, default=())
+
+    @property
+    def has_stripes(self) -> bool:
+        """Whether the problem has stripe rows (its ``counts`` then has 5 entries)."""
+        return self.stripe_pose is not None
 
     @property
     def n_poses(self) -> int:
@@ -132,12 +171,15 @@ class Packed(eqx.Module):
 
     def arrays(self) -> "Packed":
         """The arrays alone, unpadded (no static keys): for a compiled function of this problem's own sizes."""
-        return dataclasses.replace(self, pose_keys=(), chess_keys=(), dot_src=(), spot_src=())
+        return dataclasses.replace(self, pose_keys=(), chess_keys=(), dot_src=(), spot_src=(), stripe_src=())
 
     def kinds_only(self, keep) -> "Packed":
         """The problem with the rows of each kind where ``keep`` (per kind: dot, spot, rim,
         corner) is 0 counted as padding, which the sums skip (the same arrays)."""
         keep = np.asarray(keep, dtype=np.asarray(self.counts).dtype)
+        if keep.shape[0] == 4 and np.shape(self.counts)[0] == 5:  # the stripes as the spots
+            keep = np.append(keep, keep[1])
+        keep = keep[: np.shape(self.counts)[0]]
         return eqx.tree_at(lambda a: a.counts, self, self.counts * keep)
 
     def select(self, keep_dots, keep_spots, spot_laser=None) -> "Packed":
@@ -164,15 +206,44 @@ class Packed(eqx.Module):
             spot_src=tuple(x for x, k in zip(self.spot_src, ks, strict=True) if k) if self.spot_src else (),
         )
 
-    def present(self) -> tuple[Bool[Array, " D"], Bool[Array, " S"], Bool[Array, " R"], Bool[Array, " C"]]:
-        """Per kind (dots, spots, rim pixels, corners): which rows are real, not padding."""
+    def select_stripes(self, keep) -> "Packed":
+        """The problem with only the stripe samples where ``keep`` (bool, over the real rows)
+        holds.  Host arrays, keys kept."""
+        if not self.has_stripes:
+            return self
+        n_t = int(self.counts[Kind.STRIPE])
+        k = np.asarray(keep, bool)
+        if k.shape != (n_t,):
+            raise ValueError(f"select_stripes: a mask of {n_t} stripe samples expected, got {k.shape}")
+        c = np.asarray(self.counts).copy()
+        c[Kind.STRIPE] = k.sum()
+        return dataclasses.replace(
+            self,
+            stripe_pose=np.asarray(self.stripe_pose)[:n_t][k],
+            stripe_sheet=np.asarray(self.stripe_sheet)[:n_t][k],
+            stripe_pixels=np.asarray(self.stripe_pixels)[:n_t][k],
+            counts=c,
+            stripe_src=tuple(x for x, kk in zip(self.stripe_src, k, strict=True) if kk) if self.stripe_src else (),
+        )
+
+    def present(self) -> tuple[Bool[Array, " D"], ...]:
+        """Per kind (dots, spots, rim pixels, corners, and stripe samples where there are
+        stripes): which rows are real, not padding."""
         sizes = (self.dot_pose, self.spot_pose, self.rim_pixels, self.chess_pose)
+        if self.has_stripes:
+            sizes += (self.stripe_pose,)
         return tuple(jnp.arange(a.shape[0]) < self.counts[k] for k, a in enumerate(sizes))  # type: ignore[return-value]
 
 
 def pack(obs: Observations, use_views: bool = True, use_direct: bool = True) -> Packed:
-    """Pack ``obs``: a board pose per (view, board) seen, a pose per direct view with corners."""
+    """Pack ``obs``: a board pose per (view, board) seen, a pose per direct view with corners.
+    Stripes (line and ring lasers) give one row per sample, on a board with a pose in its view."""
     keys: list[tuple[int, str]] = []
+    local = obs.local_index()
+
+    def cat(parts, width):
+        return np.concatenate(parts).astype(float) if parts else np.zeros((0, width))
+
     index: dict[tuple[int, str], int] = {}
 
     def key(vi, b):
@@ -195,10 +266,28 @@ def pack(obs: Observations, use_views: bool = True, use_direct: bool = True) -> 
             if s.board is None or (vi, s.board) not in index:
                 continue  # no plane for it: no board, or a board with no dots (so no pose) in this view
             sp.append(key(vi, s.board))
-            sl.append(s.laser)
+            sl.append(int(local[s.laser]))
             spx.append(s.pixel)
             ssrc.append((vi, j))
         rim.append(np.asarray(v.rim, float).reshape(-1, 2))
+    tp, tl, tpx, tsrc = [], [], [], []
+    for vi, v in enumerate(obs.views if use_views else []):
+        for j, s in enumerate(v.stripes):
+            if s.board is None or (vi, s.board) not in index or not len(s.pixels):
+                continue
+            m = len(s.pixels)
+            tp.extend([index[(vi, s.board)]] * m)
+            tl.extend([int(local[s.laser])] * m)
+            tpx.append(np.asarray(s.pixels, float).reshape(-1, 2))
+            tsrc.extend((vi, j, k) for k in range(m))
+    stripes = {}
+    if obs.n_sheets:
+        stripes = {
+            "stripe_pose": np.array(tp, dtype=np.int64),
+            "stripe_sheet": np.array(tl, dtype=np.int64),
+            "stripe_pixels": cat(tpx, 2),
+            "stripe_src": tuple(tsrc),
+        }
     cp, cpts, cpx, ckeys = [], [], [], []
     for ci, cv in enumerate(obs.calibration_views if use_direct else []):
         if not cv.seen.any():
@@ -207,9 +296,6 @@ def pack(obs: Observations, use_views: bool = True, use_direct: bool = True) -> 
         ckeys.append(ci)
         cpts.append(obs.boards[cv.board][cv.seen])
         cpx.append(cv.pixels[cv.seen])
-
-    def cat(parts, width):
-        return np.concatenate(parts).astype(float) if parts else np.zeros((0, width))
 
     # host (numpy) arrays: a device array of each dataset's own size would compile its own
     # small copies and slices; the compiled functions take them padded (Layout.pad_packed)
@@ -224,11 +310,14 @@ def pack(obs: Observations, use_views: bool = True, use_direct: bool = True) -> 
         np.array(cp, dtype=np.int64),
         cat(cpts, 3),
         cat(cpx, 2),
-        np.array([len(dp), len(sp), sum(len(r) for r in rim), len(cp)], dtype=np.int64),
+        np.array(
+            [len(dp), len(sp), sum(len(r) for r in rim), len(cp)] + ([len(tp)] if stripes else []), dtype=np.int64
+        ),
         tuple(keys),
         tuple(ckeys),
         tuple(dsrc),
         tuple(ssrc),
+        **stripes,
     )
 
 
@@ -332,6 +421,8 @@ class Layout(NamedTuple):
     n: tuple[int, int, int, int, int, int]
     cap: tuple[int, int, int, int, int, int]
     lasers: tuple[int, int] | None = None
+    stripes: tuple[int, int] | None = None  # stripe samples (real, padded); None: no stripes
+    sheet_dim: int = 0  # the tangent columns of the rig's sheets (its point lasers' padding goes after them)
 
     @staticmethod
     def of(
@@ -340,6 +431,7 @@ class Layout(NamedTuple):
         n_chess: int | None = None,
         fine: bool = False,
         n_lasers: int | None = None,
+        sheet_dim: int = 0,
     ) -> "Layout":
         """The layout of ``pk`` (its real rows) with every size rounded up by :func:`bucket`.
 
@@ -352,7 +444,9 @@ class Layout(NamedTuple):
         ``n_poses`` / ``n_chess``: the number of board / direct-view poses (by default
         those of ``pk``'s keys).  ``fine``: powers of two instead, for solves that visit
         every row, padding included (trials in lockstep under ``vmap``).  ``n_lasers``: the
-        rig's lasers, padded by :data:`LASER_LADDER` (None: the lasers as they are).
+        rig's point lasers, padded by :data:`LASER_LADDER` (None: the lasers as they are);
+        ``sheet_dim``: the tangent columns of its sheets (the padded point lasers' columns
+        follow every real element's).
         """
         c = np.asarray(pk.counts)
         n = (
@@ -366,15 +460,19 @@ class Layout(NamedTuple):
         obs, poses = ((MIN_BUCKET, 2),) * 2 if fine else (OBSERVATION_LADDER, POSE_LADDER)
         cap = tuple(bucket(k, *(obs if i < 4 else poses)) for i, k in enumerate(n))
         lasers = None if n_lasers is None else (n_lasers, bucket(n_lasers, *LASER_LADDER))
-        return Layout(n, cap, lasers)  # type: ignore[arg-type]
+        stripes = None
+        if pk.has_stripes:
+            n_t = int(c[Kind.STRIPE])
+            stripes = (n_t, bucket(n_t, *obs))
+        return Layout(n, cap, lasers, stripes, int(sheet_dim))  # type: ignore[arg-type]
 
     def _laser_gap(self) -> tuple[int, int]:
         """Where the padded lasers' columns start in the padded global block, and how many there are."""
         if self.lasers is None:
             return 0, 0
         n, cap = self.lasers
-        start = tangent_layout((Lasers.DOF,) * n).dim
-        return start, tangent_layout((Lasers.DOF,) * cap).dim - start
+        real = tangent_layout((Lasers.DOF,) * n).dim
+        return real + self.sheet_dim, tangent_layout((Lasers.DOF,) * cap).dim - real
 
     def pad_lasers(self, lasers: Lasers) -> Lasers:
         """The rig's lasers padded with copies of the first (held, with no spot: see :func:`pad_glob`)."""
@@ -426,6 +524,14 @@ class Layout(NamedTuple):
                 "pair_block": jnp.asarray(pad_rows(pk.pair_block, size)),
                 "pair_box": jnp.asarray(pad_rows(pk.pair_box, size)),
             }
+        stripes = {}
+        if self.stripes is not None:
+            t = self.stripes[1]
+            stripes = {
+                "stripe_pose": jnp.asarray(pad_rows(pk.stripe_pose[: self.stripes[0]], t)),
+                "stripe_sheet": jnp.asarray(pad_rows(pk.stripe_sheet[: self.stripes[0]], t)),
+                "stripe_pixels": jnp.asarray(pad_rows(pk.stripe_pixels[: self.stripes[0]], t)),
+            }
         padded = Packed(
             jnp.asarray(pad_rows(pk.dot_pose[: self.n[0]], d)),
             jnp.asarray(pad_rows(pk.dot_points[: self.n[0]], d)),
@@ -437,10 +543,11 @@ class Layout(NamedTuple):
             jnp.asarray(pad_rows(pk.chess_pose[: self.n[3]], c)),
             jnp.asarray(pad_rows(pk.chess_points[: self.n[3]], c)),
             jnp.asarray(pad_rows(pk.chess_pixels[: self.n[3]], c)),
-            jnp.asarray(self.n[:4], dtype=jnp.int64),
+            jnp.asarray(self.n[:4] + ((self.stripes[0],) if stripes else ()), dtype=jnp.int64),
             (),
             (),
             **pairs,
+            **stripes,
         )
         return committed(padded)
 
@@ -481,6 +588,8 @@ class Layout(NamedTuple):
         for k in range(4):
             parts.append(x[start : start + self.n[k]])
             start += self.cap[k]
+        if self.stripes is not None:
+            parts.append(x[start : start + self.stripes[0]])
         return np.concatenate(parts)
 
 

@@ -27,7 +27,7 @@ every view has rim edge pixels.  Only points that are really visible are written
 """
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import jax
 import jax.numpy as jnp
@@ -38,7 +38,8 @@ from ..geometry.lasers import Lasers, line_plane_intersection
 from ..geometry.mirror import ConeMirror, shape_json
 from ..geometry.pose import Pose, so3_exp
 from ..geometry.rig import Rig, project_board_points, project_direct, project_rim
-from .formats import Calibration, CalibrationViewObs, Observations, SpotObs, ViewObs
+from ..geometry.sheets import Sheets
+from .formats import Calibration, CalibrationViewObs, Observations, SpotObs, StripeObs, ViewObs
 from .problem import padded_lasers
 
 PRESETS = ("paper",)
@@ -65,6 +66,11 @@ class Scene:
     chess_poses: list[Pose]
     rim_points_per_view: int
     info: dict
+    # the line and ring lasers' stripes: an emission-angle step (deg) along each sheet's fan, and
+    # per sheet (its element index) the fan's limits as camera-frame azimuths (deg, from, to;
+    # absent: all round)
+    stripe_step_deg: float = 0.5
+    fans: dict = field(default_factory=dict)
 
 
 def grid_points(cols: int, rows: int, pitch: float, centred: bool = False, pitch_y: float | None = None) -> np.ndarray:
@@ -101,6 +107,46 @@ def paper_rig(n_lasers: int = 10) -> Rig:
         pts.append([ring * np.cos(az), ring * np.sin(az), z])
         dirs.append([np.cos(elev) * np.cos(aim_az), np.cos(elev) * np.sin(aim_az), np.sin(elev)])
     return Rig(paper_camera(), mirror, Lasers.create(np.array(pts), np.array(dirs)))
+
+
+def sheet_rig(
+    rig: Rig, kinds: Sequence[str] = ("cone", "point", "point", "point", "point"), seed: int = 5
+) -> tuple[Rig, dict]:
+    """A rig of ``rig``'s camera and mirror with the lasers ``kinds`` in order: point lasers as
+    :func:`paper_rig` spreads them, ring lasers (``cone``) near the axis 5 mm in front of the lens
+    opening 92-97 deg from the axis (the light a few degrees towards the camera, where the mirror
+    sees the walls), line lasers (``plane``) through an emitter on the 30 mm ring, each plane
+    tilted 3-8 deg from across the axis about its fan's aim.  Returns the rig and the line
+    lasers' fans (camera-frame azimuths, deg, for :attr:`Scene.fans`: 100 deg about each aim)."""
+    kinds = tuple(kinds)
+    bad = [k for k in kinds if k not in ("point", "plane", "cone")]
+    if bad or not kinds:
+        raise ValueError(f"kinds: expected point, plane or cone for each laser, got {kinds}")
+    rng = np.random.default_rng(seed)
+    n_p = sum(k == "point" for k in kinds)
+    points = paper_rig(max(n_p, 1)).lasers if n_p else None
+    n_l = sum(k != "point" for k in kinds)
+    apex, axis, angle, fans = [], [], [], {}
+    for j, (i, k) in enumerate((i, k) for i, k in enumerate(kinds) if k != "point"):
+        az = 2 * np.pi * (j + 0.25) / n_l + np.radians(rng.uniform(-5, 5))
+        if k == "cone":
+            apex.append([rng.uniform(-1, 1), rng.uniform(-1, 1), LASER_RING_Z_MM + rng.uniform(-1, 1)])
+            tilt = np.radians(rng.uniform(0.5, 1.5))
+            axis.append([np.sin(tilt) * np.cos(az), np.sin(tilt) * np.sin(az), np.cos(tilt)])
+            angle.append(np.radians(rng.uniform(92.0, 97.0)))
+        else:
+            apex.append([LASER_RING_MM * np.cos(az), LASER_RING_MM * np.sin(az), LASER_RING_Z_MM])
+            tilt = np.radians(rng.uniform(3.0, 8.0)) * rng.choice([-1.0, 1.0])
+            tangent = np.array([-np.sin(az), np.cos(az), 0.0])
+            radial = np.array([np.cos(az), np.sin(az), 0.0])
+            normal = np.cos(tilt) * np.array([0.0, 0.0, 1.0]) + np.sin(tilt) * radial
+            normal += 0.03 * rng.uniform(-1, 1) * tangent
+            axis.append(normal)
+            angle.append(np.pi / 2)
+            fans[i] = (float(np.degrees(az)) - 50.0, float(np.degrees(az)) + 50.0)
+    sheets = Sheets.create([k for k in kinds if k != "point"], apex, axis, angle) if n_l else None
+    lasers = points if points is not None else Lasers.create(np.zeros((0, 3)), np.zeros((0, 3)))
+    return Rig.of_elements(rig.camera, rig.mirror, lasers, sheets, kinds), fans
 
 
 def _box_walls(
@@ -248,6 +294,74 @@ def visible_spots(scene: Scene, view: int) -> list[tuple[int, str, np.ndarray, n
     return out
 
 
+@jax.jit
+def _sheet_hits(rig: Rig, dirs, origins, poses_R, poses_t):
+    """Per emission ray and wall: where the ray meets the wall's plane, and its pixel through the mirror."""
+    from ..geometry.mirror import project_through_mirror
+
+    def one(p, d, r, t):
+        n = r[:, 2]
+        den = jnp.dot(n, d)
+        lam = jnp.where(jnp.abs(den) > 1e-9, jnp.dot(n, t - p) / jnp.where(jnp.abs(den) > 1e-9, den, 1.0), -1.0)
+        x = p + lam * d
+        res = project_through_mirror(rig.camera, rig.mirror, x)
+        return lam, x, res.uv, res.valid
+
+    per_wall = jax.vmap(one, in_axes=(None, None, 0, 0))
+    return jax.vmap(per_wall, in_axes=(0, 0, None, None))(origins, dirs, poses_R, poses_t)
+
+
+def sheet_rays(scene: Scene, element: int) -> tuple[np.ndarray, np.ndarray]:
+    """The emission rays of one line or ring laser (element index ``element``): origins and unit
+    directions (K, 3), camera frame, one per :attr:`Scene.stripe_step_deg` of its fan."""
+    rig = scene.rig
+    j = int(rig.local_index[element])
+    sh = rig.sheets
+    p, a, th = (np.asarray(x, float) for x in (sh.apex[j], sh.axis[j], sh.half_angle[j]))
+    step = np.radians(scene.stripe_step_deg)
+    phi = np.arange(0.0, 2 * np.pi, step)
+    from ..support.safe import orthonormal_basis
+
+    e1, e2 = (np.asarray(e) for e in orthonormal_basis(jnp.asarray(a)))
+    u = np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2
+    d = np.cos(th) * a + np.sin(th) * u
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    if element in scene.fans:
+        lo, hi = (np.radians(x) for x in scene.fans[element])
+        az = np.arctan2(d[:, 1], d[:, 0])
+        keep = np.mod(az - lo, 2 * np.pi) <= np.mod(hi - lo, 2 * np.pi)
+        d = d[keep]
+    return np.broadcast_to(p, d.shape).copy(), d
+
+
+def visible_stripes(scene: Scene, view: int) -> list[tuple[int, str, np.ndarray, np.ndarray]]:
+    """The stripes of one catadioptric view: per line or ring laser and wall, (laser element index,
+    wall, 3D points (M, 3) camera frame, exact pixels (M, 2)) of its emission rays that meet that
+    wall first and are seen through the mirror, in the order of the fan."""
+    rig = scene.rig
+    if not rig.has_sheets:
+        return []
+    walls = [b for b in scene.boards if b != scene.chess_board]
+    poses = scene.box_poses[view]
+    rs = jnp.stack([poses[b].R for b in walls])
+    ts = jnp.stack([poses[b].t for b in walls])
+    out = []
+    for e in rig.sheet_elements:
+        org, d = sheet_rays(scene, int(e))
+        if not len(d):
+            continue
+        lam, x, uv, ok = (np.asarray(a) for a in _sheet_hits(rig, jnp.asarray(d), jnp.asarray(org), rs, ts))
+        lam_l = np.where(lam > 0, lam, np.inf)
+        w = np.argmin(lam_l, axis=1)
+        rows = np.arange(len(d))
+        hit = np.isfinite(lam_l[rows, w]) & ok[rows, w]
+        for k, b in enumerate(walls):
+            sel = hit & (w == k)
+            if sel.sum() >= 2:
+                out.append((int(e), b, x[rows, w][sel], uv[rows, w][sel]))
+    return out
+
+
 def simulate(scene: Scene, noise: "float | Sequence[float]" = 0.0, seed: int = 0) -> tuple[Observations, Calibration]:
     """Observations of a scene with Gaussian pixel noise ``noise`` (px per axis), and the truth.
 
@@ -258,16 +372,19 @@ def simulate(scene: Scene, noise: "float | Sequence[float]" = 0.0, seed: int = 0
     laser's spot is written on the wall its beam meets first, where it is visible through the
     mirror.
     """
-    sig = np.broadcast_to(np.asarray(noise, dtype=float), (4,)) if np.ndim(noise) == 0 else np.asarray(noise, float)
-    if sig.shape != (4,) or not np.all(np.isfinite(sig) & (sig >= 0)):
+    sig = np.broadcast_to(np.asarray(noise, dtype=float), (5,)) if np.ndim(noise) == 0 else np.asarray(noise, float)
+    if sig.shape == (4,):  # the stripes' centre lines as noisy as the spots
+        sig = np.append(sig, sig[1])
+    if sig.shape != (5,) or not np.all(np.isfinite(sig) & (sig >= 0)):
         raise ValueError(
-            f"noise must be a non-negative number of pixels, or four (dots, spots, rim, corners), got {noise}"
+            "noise must be a non-negative number of pixels, or four (dots, spots, rim, corners) or five (and "
+            f"stripes), got {noise}"
         )
     rng = np.random.default_rng(seed)
     rig = scene.rig
     cam = rig.camera
     walls = [b for b in scene.boards if b != scene.chess_board]
-    noise_px = float(sig[0]) if np.ndim(noise) == 0 else sig.tolist()
+    noise_px = float(sig[0]) if np.ndim(noise) == 0 else np.asarray(noise, float).tolist()
 
     def noisy(px, kind: int):
         s = sig[kind]
@@ -284,17 +401,19 @@ def simulate(scene: Scene, noise: "float | Sequence[float]" = 0.0, seed: int = 0
         for b in walls:
             uv, ok = project_board_points(rig, poses[b], jnp.asarray(scene.boards[b]))
             per_board[b] = (noisy(uv, 0), np.asarray(ok))
-        spots = [SpotObs(laser, wall, noisy(uv, 1)) for laser, wall, _, uv in visible_spots(scene, i)]
+        point_of = rig.point_elements
+        spots = [SpotObs(int(point_of[laser]), wall, noisy(uv, 1)) for laser, wall, _, uv in visible_spots(scene, i)]
+        stripes = [StripeObs(e, wall, noisy(uv, 4)) for e, wall, _, uv in visible_stripes(scene, i)]
         angles = np.sort(rng.uniform(0, 2 * np.pi, scene.rim_points_per_view))
         ruv, rok = project_rim(rig, jnp.asarray(angles))
         rim = noisy(np.asarray(ruv)[np.asarray(rok)], 2)
-        views.append(ViewObs(f"view{i:02d}", per_board, spots, rim))
+        views.append(ViewObs(f"view{i:02d}", per_board, spots, rim, stripes))
 
     obs = Observations(
         image_size=(cam.width, cam.height),
         mirror_radius=float(rig.mirror.radius),
         mirror_height=float(rig.mirror.height),
-        n_lasers=rig.lasers.n,
+        n_lasers=rig.n_elements,
         boards={k: np.asarray(v, float) for k, v in scene.boards.items()},
         calibration_views=cal_views,
         views=views,
@@ -303,6 +422,7 @@ def simulate(scene: Scene, noise: "float | Sequence[float]" = 0.0, seed: int = 0
             "rigid_boards": list(walls),  # the walls stand still in the box (calibrate(rigid=True))
         },
         mirror_shape=None if isinstance(rig.mirror, ConeMirror) else shape_json(rig.mirror),
+        laser_kinds=rig.kinds,
     )
     truth = Calibration(
         rig=rig,
