@@ -752,3 +752,79 @@ def export(cal: Calibration, fmt: str, path, range_mm: float | None = None, lens
     lines = _fit_lines(fit, why)
     write_text_atomic(path, ocamcalib_text(fit, camera.width, camera.height, comments + lines))
     return ExportReport(Path(path), fmt, lines[0], fit, range_mm, why)
+
+
+# --------------------------------------------------------------------------- measured points
+
+POINT_COLUMNS = (
+    "view",
+    "view_name",
+    "laser",
+    "spot",
+    "x_mm",
+    "y_mm",
+    "z_mm",
+    "std_x_mm",
+    "std_y_mm",
+    "std_z_mm",
+    "angle_deg",
+    "gap_mm",
+    "nearly_parallel",
+    "off_line",
+)
+
+
+def _point_rows(doc: dict):
+    """One tuple per point of a ``slcv-points/1`` document, in :data:`POINT_COLUMNS`' order; a
+    stripe's point gives its ``sample`` as ``spot`` (its ``stripe`` is its laser's)."""
+    for k, view in enumerate(doc["views"]):
+        for p in view["points"]:
+            std = p.get("std") or [math.nan] * 3
+            yield (
+                k,
+                str(view["name"]),
+                int(p["laser"]),
+                int(p.get("spot", p.get("sample", -1))),
+                *(float(v) for v in p["xyz"]),
+                *(math.nan if v is None else float(v) for v in std),
+                float(p.get("angle_deg", math.nan)),
+                float(p.get("gap_mm", math.nan)),
+                int(bool(p.get("nearly_parallel", False))),
+                int(bool(p.get("off_line", False))),
+            )
+
+
+def points_csv(doc: dict) -> str:
+    """A ``slcv-points/1`` document's points as CSV: a header of :data:`POINT_COLUMNS`, one row per
+    point (camera frame, mm; the flags 0 or 1; ``nan`` where a std is unknown)."""
+    import csv
+    import io
+
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(POINT_COLUMNS)
+    for row in _point_rows(doc):
+        w.writerow([repr(v) if isinstance(v, float) else v for v in row])
+    return buf.getvalue()
+
+
+def points_ply(doc: dict) -> str:
+    """A ``slcv-points/1`` document's points as an ASCII PLY point cloud: per vertex ``x y z``
+    (double, mm, camera frame), ``std_x std_y std_z`` (double, mm), ``view``, ``laser``, ``spot``
+    (int) and ``nearly_parallel``, ``off_line`` (uchar 0/1)."""
+    rows = list(_point_rows(doc))
+    head = [
+        "ply",
+        "format ascii 1.0",
+        "comment slcvjax measure: slcv-points/1, mm, camera frame",
+        f"element vertex {len(rows)}",
+        *(f"property double {n}" for n in ("x", "y", "z", "std_x", "std_y", "std_z")),
+        *(f"property int {n}" for n in ("view", "laser", "spot")),
+        "property uchar nearly_parallel",
+        "property uchar off_line",
+        "end_header",
+    ]
+    body = [
+        " ".join([*(repr(v) for v in r[4:10]), str(r[0]), str(r[2]), str(r[3]), str(r[12]), str(r[13])]) for r in rows
+    ]
+    return "\n".join(head + body) + "\n"
