@@ -103,7 +103,11 @@ def build_parser() -> argparse.ArgumentParser:
     c = _add(sub, "calibrate", help="calibrate the rig from observation files or image folders")
     c.add_argument("inputs", nargs="+", help="slcv-observations/1 file(s) or image folder(s) with setup.json")
     c.add_argument("--out", required=True, help="output file (one input) or directory (several)")
-    c.add_argument("--camera", help="a slcv-calibration/1 file whose camera starts the calibration")
+    c.add_argument(
+        "--camera",
+        help="a camera that starts the calibration: a slcv-calibration/1 file, OpenCV FileStorage YAML "
+        "(camera_matrix, distortion_coefficients, image_width, image_height) or ROS camera_info YAML",
+    )
     c.add_argument(
         "--from",
         dest="start_from",

@@ -297,3 +297,69 @@ def test_export_command_prints_the_approximation_and_refuses_bad_input(tmp_path,
     assert main(["export", cal, "--format", "kalibr", "--out", str(tmp_path / "x.yaml"), "--range", "-1"]) == 2
     assert "--range: must be a positive number" in capsys.readouterr().err
     assert main(["export", str(tmp_path / "missing.json"), "--format", "ros", "--out", str(out)]) == 2
+
+
+# --------------------------------------------------------------------------- --camera from YAML
+
+ROS_YAML = """image_width: 640
+image_height: 480
+camera_name: left
+camera_matrix:
+  rows: 3
+  cols: 3
+  data: [500.5, 0, 320.25, 0, 501.0, 240.75, 0, 0, 1]
+distortion_model: plumb_bob
+distortion_coefficients:
+  rows: 1
+  cols: 5
+  data: [0.1, -0.2, 0.001, 0.002, 0.05]
+rectification_matrix:
+  rows: 3
+  cols: 3
+  data: [1, 0, 0, 0, 1, 0, 0, 0, 1]
+"""
+
+
+def test_read_camera_takes_opencv_and_ros_yaml(tmp_path):
+    from slcvjax.observations.camera_files import read_camera
+
+    cam = _camera()
+    for fmt in ("opencv", "ros"):
+        ex.export(_cal(sj.Rig.camera_only(cam)), fmt, tmp_path / f"{fmt}.yaml")
+        back = read_camera(tmp_path / f"{fmt}.yaml")
+        np.testing.assert_array_equal(np.asarray(back.params()), np.asarray(cam.params()))
+        assert (back.width, back.height) == (640, 480)
+    (tmp_path / "ros.yaml").write_text(ROS_YAML)  # as a ROS user holds it
+    back = read_camera(tmp_path / "ros.yaml")
+    np.testing.assert_array_equal(
+        np.asarray(back.params()), [500.5, 501.0, 320.25, 240.75, 0.1, -0.2, 0.001, 0.002, 0.05]
+    )
+    four = ROS_YAML.replace(
+        "cols: 5\n  data: [0.1, -0.2, 0.001, 0.002, 0.05]", "cols: 4\n  data: [0.1, -0.2, 0.001, 0.002]"
+    )
+    (tmp_path / "four.yaml").write_text(four)
+    assert float(read_camera(tmp_path / "four.yaml").dist[4]) == 0.0
+    bad = {
+        "shape.yaml": (
+            ROS_YAML.replace("rows: 3\n  cols: 3\n  data: [500.5", "rows: 2\n  cols: 3\n  data: [500.5").replace(
+                ", 0, 0, 1]\ndistortion_model", "]\ndistortion_model"
+            ),
+            "camera_matrix: expected 3x3",
+        ),  # fmt: skip
+        "model.yaml": (ROS_YAML.replace("plumb_bob", "equidistant"), "distortion_model: 'equidistant'"),
+        "nowidth.yaml": (ROS_YAML.replace("image_width: 640\n", ""), "image_width: missing"),
+        "nan.yaml": (ROS_YAML.replace("0.002, 0.05]", "0.002, .nan]"), "distortion_coefficients[4]: not a finite"),
+    }
+    for name, (text, needle) in bad.items():
+        (tmp_path / name).write_text(text)
+        with pytest.raises(sj.FormatError, match=re.escape(f"{name}: {needle}")):
+            read_camera(tmp_path / name)
+
+
+def test_calibrate_names_a_bad_camera_yaml(tmp_path, capsys):
+    obs, _ = sj.simulate(sj.make_scene("paper", n_lasers=2, n_views=2), noise=0.0, seed=0)
+    sj.write_observations(tmp_path / "obs.json", obs)
+    (tmp_path / "cam.yaml").write_text(ROS_YAML.replace("image_width: 640\n", ""))
+    argv = ["calibrate", str(tmp_path / "obs.json"), "--camera", str(tmp_path / "cam.yaml")]
+    assert main([*argv, "--out", str(tmp_path / "cal.json")]) == 2
+    assert "cam.yaml: image_width: missing" in capsys.readouterr().err

@@ -39,7 +39,12 @@ def run(args) -> int:
     observations = _read_inputs(inputs)  # all read (and image folders detected) before any calibration
     if args.camera and args.start_from:
         raise FormatError("--camera and --from both give the camera: give one")
-    camera = read_calibration(args.camera).rig.camera if args.camera else None
+    if args.camera:
+        from ..observations.camera_files import read_camera
+
+        camera = read_camera(args.camera)
+    else:
+        camera = None
     mirror = None
     if args.start_from:
         start = read_calibration(args.start_from).rig
