@@ -262,7 +262,7 @@ def build_parser() -> argparse.ArgumentParser:
     df = _add(sub, "diff", help="compare two calibrations: their difference over the image beside the predicted one")
     df.add_argument("a", metavar="A.json", help="a slcv-calibration/1 file")
     df.add_argument("b", metavar="B.json", help="another calibration of the same sensor")
-    df.add_argument("--out", help="also write the maps as a PNG (and DIFF.json beside it: slcv-diff/1)")
+    df.add_argument("--out", help="also write the maps (difference, predicted, ratio) as a PNG")
     df.add_argument(
         "--range",
         type=float,

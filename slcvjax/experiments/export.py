@@ -119,6 +119,19 @@ _mirror_points_jit = jax.jit(_mirror_points)
 _lens_points_jit = jax.jit(_lens_points)
 
 
+def points_at_ranges(rig: Rig, pixels, ranges_mm, lens: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel (n, 2) and range (k,): the point (n, k, 3), camera frame, mm, on the pixel's
+    reflected ray (the lens's ray where the rig has no mirror or ``lens``) at that distance from
+    the camera's centre, and whether it exists (n, k)."""
+    grid, r = jnp.asarray(np.asarray(pixels, float)), jnp.asarray(np.asarray(ranges_mm, float))
+    if rig.mirror is not None and not lens:
+        pts, ok = _mirror_points_jit(rig.camera, rig.mirror, grid, r)
+    else:
+        pts, ok = _lens_points_jit(rig.camera, grid, r)
+    pts = np.asarray(pts)
+    return pts, np.asarray(ok) & np.all(np.isfinite(pts), axis=-1)
+
+
 def field_samples(rig: Rig, range_mm: float, lens: bool = False, n_grid: int = 60) -> FieldSamples:
     """Pixels of an ``n_grid`` x ``n_grid`` grid over the image (over the sensor's part of the
     mirror's image where the rig has a mirror and ``lens`` is False) and their points at
