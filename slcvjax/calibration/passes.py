@@ -6,6 +6,8 @@ may replace (the final pass refines the winners), and the first pass only far en
 the boards' flips again.
 """
 
+import logging
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -115,9 +117,22 @@ def solve_job(tr: "Trial", params: Params, spec: PassSpec, masks: Masks | None =
 TWIN_SOLVE = PassSpec("other starts", rtol=RTOL_TWIN, rig_held=True)
 
 
+# the passes as they end, with their timings: quiet unless a command turns it on (``slcvjax calibrate``, ``omni``)
+progress = logging.getLogger("slcvjax.progress")
+progress.setLevel(logging.WARNING)
+
+
 def record_pass(tr: "Trial", name: str, res, limit: int | None, note: str = "") -> None:
     """Add the pass ``name``'s solve ``res`` to the trial's passes (``limit``: the pass's own step limit;
-    ``note``: what followed it)."""
+    ``note``: what followed it), and say so on the ``slcvjax.progress`` logger with the seconds
+    since the trial's previous pass (or its staged start)."""
+    now = time.perf_counter()
+    since = getattr(tr, "t_last", None) or tr.t0 + tr.t_staged
+    tr.t_last = now
+    progress.info(
+        f"  pass {name}: {int(res.steps)} steps, cost {float(res.initial_cost):.4g} -> {float(res.cost):.4g}, "
+        f"{Outcome(int(res.result)).name.lower()}, {now - since:.1f} s"
+    )
     tr.passes.append(
         JointPass(
             name,

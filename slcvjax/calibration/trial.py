@@ -44,6 +44,7 @@ class Trial:
         st = staged(obs, camera=camera, pk=pack(obs), mirror=mirror, policy=self.policy)
         self.st, self.pk = st, st.packed  # spots without a board have one now
         self.t_staged = time.perf_counter() - t0
+        self.t_last: float | None = None  # when its last pass ended (the progress lines' timings)
         if camera is not None and not st.chess_poses:
             st.chess_poses = {}
         chess = chess_start(obs, self.pk, st.camera, st.chess_poses)

@@ -219,3 +219,23 @@ def write_pipe(out: Path, res: dict, points_name: str, noise: float) -> list[str
 
 def fmt_finite(x, nd=1, width=5):
     return f"{x:{width}.{nd}f}" if np.isfinite(x) else f"{'-':>{width}s}"
+
+
+class progress_lines:
+    """While it lasts, the calibration's passes are reported as they end (the ``slcvjax.progress``
+    logger at the command's level), after a line where the first run compiles."""
+
+    def __enter__(self):
+        from ..calibration.passes import progress
+        from ..support.cache import compile_note
+
+        self._logger, self._level = progress, progress.level
+        progress.setLevel(logging.getLogger("slcvjax").getEffectiveLevel())
+        note = compile_note()
+        if note:
+            log.info(note)
+        return self
+
+    def __exit__(self, *exc):
+        self._logger.setLevel(self._level)
+        return False

@@ -5,7 +5,7 @@ import time
 from pathlib import Path
 
 from ..observations.formats import FormatError, check_writable, write_calibration, write_observations
-from .common import board_flags, export_opencv, print_report
+from .common import board_flags, export_opencv, print_report, progress_lines
 
 log = logging.getLogger(__name__)
 
@@ -36,7 +36,9 @@ def run(args) -> int:
         log.info(f"wrote {args.observations}")
     t0 = time.perf_counter()
     try:
-        res = calibrate(obs, loss=args.loss)
+        log.info(f"calibrating {n} views: the staged start, then the joint passes")
+        with progress_lines():
+            res = calibrate(obs, loss=args.loss)
     except CalibrationError as e:
         raise FormatError(str(e)) from None
     cal = to_calibration(res, obs)
