@@ -47,6 +47,25 @@ def _add(sub, name: str, help: str) -> argparse.ArgumentParser:
     return parser
 
 
+# repeated from slcvjax.experiments.export (checked by tests/test_export.py)
+EXPORT_FORMATS = ("opencv", "opencv-omnidir", "ros", "kalibr", "ocamcalib", "mrcal")
+
+
+def _board_flags(parser: argparse.ArgumentParser) -> None:
+    """``--board`` and ``--square``, the same wherever a chessboard is calibrated (``camera``, ``omni``)."""
+    parser.add_argument("--board", required=True, help="the chessboard's inner corners COLSxROWS, e.g. 9x6")
+    parser.add_argument("--square", type=float, required=True, help="the chessboard's square size in mm")
+
+
+def _export_opencv_flag(parser: argparse.ArgumentParser) -> None:
+    """``--export-opencv``, wherever a camera is calibrated (``calibrate``, ``camera``, ``omni``)."""
+    parser.add_argument(
+        "--export-opencv",
+        metavar="FILE",
+        help="also write the camera (its lens) as OpenCV FileStorage YAML (the same as slcvjax export --format opencv)",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="slcvjax", description="Calibrate and measure with a structured-light catadioptric vision sensor."
@@ -84,7 +103,11 @@ def build_parser() -> argparse.ArgumentParser:
     c = _add(sub, "calibrate", help="calibrate the rig from observation files or image folders")
     c.add_argument("inputs", nargs="+", help="slcv-observations/1 file(s) or image folder(s) with setup.json")
     c.add_argument("--out", required=True, help="output file (one input) or directory (several)")
-    c.add_argument("--camera", help="a slcv-calibration/1 file whose camera starts the calibration")
+    c.add_argument(
+        "--camera",
+        help="a camera that starts the calibration: a slcv-calibration/1 file, OpenCV FileStorage YAML "
+        "(camera_matrix, distortion_coefficients, image_width, image_height) or ROS camera_info YAML",
+    )
     c.add_argument(
         "--from",
         dest="start_from",
@@ -118,7 +141,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="image folders: calibrate from the centroids as detected (default: each dot's and spot's centroid "
         "corrected for the mirror's distortion of its image at a first calibration, then calibrated again)",
     )
-    c.add_argument("--export-opencv", help="also write the camera as OpenCV FileStorage YAML")
+    _export_opencv_flag(c)
     c.add_argument(
         "--report",
         action="store_true",
@@ -147,17 +170,16 @@ def build_parser() -> argparse.ArgumentParser:
 
     k = _add(sub, "camera", help="calibrate a plain camera from chessboard images")
     k.add_argument("images", nargs="+")
-    k.add_argument("--board", default="9x6", help="inner corners COLSxROWS (default 9x6)")
-    k.add_argument("--square", type=float, default=25.0, help="square size in mm (default 25)")
+    _board_flags(k)
     k.add_argument("--out", required=True, help="output slcv-calibration/1 file (camera only)")
-    k.add_argument("--export-opencv", help="also write OpenCV FileStorage YAML")
+    _export_opencv_flag(k)
     k.set_defaults(func=_command("camera"))
 
     o = _add(sub, "omni", help="calibrate a catadioptric camera from chessboard images seen through its mirror")
     o.add_argument("images", nargs="+")
-    o.add_argument("--board", required=True, help="inner corners COLSxROWS, e.g. 6x8")
-    o.add_argument("--square", type=float, required=True, help="square size in mm")
+    _board_flags(o)
     o.add_argument("--out", required=True, help="output slcv-calibration/1 file")
+    _export_opencv_flag(o)
     o.add_argument(
         "--mirror",
         default="hyperboloid",
@@ -190,6 +212,13 @@ def build_parser() -> argparse.ArgumentParser:
         "images (each a view; spots labelled by the calibration's laser lines)",
     )
     m.add_argument("--out", required=True, help="output slcv-points/1 file")
+    m.add_argument(
+        "--format",
+        dest="formats",
+        default="json",
+        help="comma-separated: json (always written, --out), csv and ply beside it (OUT's name with .csv, .ply; "
+        "their columns: see the formats page); default json",
+    )
     m.add_argument("--fit-circle", action="store_true", help="fit a circle per view across the axis")
     m.add_argument("--pixel-sigma", type=float, default=None, help="spot pixel noise in px (default: calibration's)")
     m.add_argument("--axis", default=None, help="pipe axis x,y,z in the camera frame (default 0,0,1)")
@@ -201,6 +230,48 @@ def build_parser() -> argparse.ArgumentParser:
         "mirror's distortion of the spot's image (the surface taken as a pipe's wall about --axis)",
     )
     m.set_defaults(func=_command("measure"))
+
+    x = _add(sub, "export", help="write a calibration's camera in another tool's format")
+    x.add_argument("calibration", help="a slcv-calibration/1 file")
+    x.add_argument(
+        "--format",
+        required=True,
+        choices=EXPORT_FORMATS,
+        help="opencv (FileStorage YAML, K and 5 coefficients), opencv-omnidir (Mei's model: K, D, xi), ros "
+        "(camera_info YAML), kalibr (camchain YAML: pinhole or omni, radtan), ocamcalib (calib_results.txt), mrcal "
+        "(.cameramodel, LENSMODEL_OPENCV5). With a mirror, opencv-omnidir, kalibr and ocamcalib write the best "
+        "central approximation of the rig, fitted over the mirror's field (its RMS and worst pixel error are "
+        "printed and written in the file); the others the camera's lens alone",
+    )
+    x.add_argument("--out", required=True, help="output file")
+    x.add_argument(
+        "--lens",
+        action="store_true",
+        help="the camera's lens alone even where the calibration has a mirror (kalibr: pinhole)",
+    )
+    x.add_argument(
+        "--range",
+        type=float,
+        default=None,
+        metavar="MM",
+        help="the working range the approximation is fitted about (points at 0.5, 1 and 2 times it, mm from the "
+        "camera; default: the lasers' mean working range, else the boards' mean distance)",
+    )
+    x.set_defaults(func=_command("export"))
+
+    df = _add(sub, "diff", help="compare two calibrations: their difference over the image beside the predicted one")
+    df.add_argument("a", metavar="A.json", help="a slcv-calibration/1 file")
+    df.add_argument("b", metavar="B.json", help="another calibration of the same sensor")
+    df.add_argument("--out", help="also write the maps (difference, predicted, ratio) as a PNG")
+    df.add_argument(
+        "--range",
+        type=float,
+        default=None,
+        metavar="MM",
+        help="the range, mm from the camera, where the two calibrations' rays are compared (default: A's lasers' "
+        "mean working range, else its boards' mean distance)",
+    )
+    df.set_defaults(func=_command("diff"))
 
     w = _add(sub, "sweep", help="noise-sensitivity sweep: Monte Carlo calibrations beside the bound")
     w.add_argument("--preset", default="paper", choices=PRESETS, help="simulated scene (default paper)")

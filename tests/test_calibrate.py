@@ -504,12 +504,13 @@ def test_camera_command_lists_images_without_a_board(tmp_path, capsys):
     images = sorted(glob.glob("tests/data/opencv_left/left*.jpg"))[:4]
     blank = tmp_path / "blank.png"
     cv2.imwrite(str(blank), np.zeros((480, 640), np.uint8))
-    rc = cli.main(["camera", *images, str(blank), "--out", str(tmp_path / "cam.json")])
+    board = ["--board", "9x6", "--square", "25"]
+    rc = cli.main(["camera", *images, str(blank), *board, "--out", str(tmp_path / "cam.json")])
     assert rc == 0
     assert str(blank) in json.loads((tmp_path / "cam.json").read_text())["residuals"]["images_without_board"]
     bad = tmp_path / "broken.jpg"
     bad.write_bytes(b"not an image")
-    assert cli.main(["camera", *images, str(bad), "--out", str(tmp_path / "c2.json")]) == 2
+    assert cli.main(["camera", *images, str(bad), *board, "--out", str(tmp_path / "c2.json")]) == 2
     assert "broken.jpg" in capsys.readouterr().err
 
 

@@ -175,6 +175,40 @@ def test_measure_command_writes_points(pipe_files):
     assert abs(v0["circle"]["diameter"] - 150.0) < 5 * v0["circle"]["diameter_std"]
 
 
+@pytest.mark.slow
+def test_measure_writes_csv_and_ply_beside_the_json(pipe_files, tmp_path, capsys):
+    """--format json,csv,ply: the CSV's and the PLY's rows are the JSON's points, in its order."""
+    d, _ = pipe_files
+    out = tmp_path / "points.json"
+    argv = ["measure", str(d / "cal.json"), str(d / "obs.json"), "--out", str(out), "--format", "json,csv,ply"]
+    assert cli.main(argv) == 0
+    doc = json.loads(out.read_text())
+    pts = [(k, p) for k, v in enumerate(doc["views"]) for p in v["points"]]
+    assert pts
+    import csv
+
+    rows = list(csv.DictReader(out.with_suffix(".csv").read_text().splitlines()))
+    assert len(rows) == len(pts)
+    for row, (k, p) in zip(rows, pts, strict=True):
+        assert int(row["view"]) == k and row["view_name"] == doc["views"][k]["name"]
+        assert int(row["laser"]) == p["laser"] and int(row["spot"]) == p["spot"]
+        assert [float(row[c]) for c in ("x_mm", "y_mm", "z_mm")] == p["xyz"]
+        assert [float(row[c]) for c in ("std_x_mm", "std_y_mm", "std_z_mm")] == p["std"]
+        assert int(row["nearly_parallel"]) == p["nearly_parallel"]
+    lines = out.with_suffix(".ply").read_text().splitlines()
+    assert lines[:2] == ["ply", "format ascii 1.0"]
+    assert f"element vertex {len(pts)}" in lines
+    body = lines[lines.index("end_header") + 1 :]
+    props = [ln.split()[-1] for ln in lines if ln.startswith("property")]
+    assert len(body) == len(pts)
+    for line, (k, p) in zip(body, pts, strict=True):
+        vals = dict(zip(props, line.split(), strict=True))
+        assert [float(vals[c]) for c in "xyz"] == p["xyz"] and int(vals["view"]) == k
+    assert "points.csv" in capsys.readouterr().out
+    assert cli.main([*argv[:-1], "json,xyz"]) == 2
+    assert "--format: expected json, csv or ply" in capsys.readouterr().err
+
+
 def _fails(capsys, argv, *needles):
     assert cli.main(argv) == 2
     err = capsys.readouterr().err

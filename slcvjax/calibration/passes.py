@@ -6,6 +6,9 @@ may replace (the final pass refines the winners), and the first pass only far en
 the boards' flips again.
 """
 
+import logging
+import time
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -115,9 +118,22 @@ def solve_job(tr: "Trial", params: Params, spec: PassSpec, masks: Masks | None =
 TWIN_SOLVE = PassSpec("other starts", rtol=RTOL_TWIN, rig_held=True)
 
 
+# the passes as they end, with their timings: quiet unless a command turns it on (``slcvjax calibrate``, ``omni``)
+progress = logging.getLogger("slcvjax.progress")
+progress.setLevel(logging.WARNING)
+
+
 def record_pass(tr: "Trial", name: str, res, limit: int | None, note: str = "") -> "Trial":
     """The trial with the pass ``name``'s solve ``res`` added to its passes (``limit``: the pass's
-    own step limit; ``note``: what followed it)."""
+    own step limit; ``note``: what followed it), said on the ``slcvjax.progress`` logger with the
+    seconds since the trial's previous pass (or its staged start)."""
+    now = time.perf_counter()
+    since = tr.t_last or tr.t0 + tr.t_staged
+    progress.info(
+        f"  pass {name}: {int(res.steps)} steps, cost {float(res.initial_cost):.4g} -> {float(res.cost):.4g}, "
+        f"{Outcome(int(res.result)).name.lower()}, {now - since:.1f} s"
+    )
+    tr = dataclasses.replace(tr, t_last=now)
     return tr.with_pass(
         JointPass(
             name,

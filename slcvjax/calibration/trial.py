@@ -65,6 +65,7 @@ class Trial:
     set_aside: tuple[Packed, np.ndarray] | None = None
     # line and ring lasers held because their stripes cannot fix them (their index among the sheets)
     undetermined_sheets: tuple[int, ...] = ()
+    t_last: float | None = None  # when its last pass ended (the progress lines' timings)
 
     @property
     def policy(self) -> RobustPolicy:

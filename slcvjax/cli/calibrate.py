@@ -6,7 +6,7 @@ import time
 from pathlib import Path
 
 from ..observations.formats import FormatError, check_writable, write_calibration
-from .common import export_opencv, print_placed, print_report
+from .common import export_opencv, print_placed, print_report, progress_lines
 
 log = logging.getLogger(__name__)
 
@@ -39,7 +39,12 @@ def run(args) -> int:
     observations = _read_inputs(inputs)  # all read (and image folders detected) before any calibration
     if args.camera and args.start_from:
         raise FormatError("--camera and --from both give the camera: give one")
-    camera = read_calibration(args.camera).rig.camera if args.camera else None
+    if args.camera:
+        from ..observations.camera_files import read_camera
+
+        camera = read_camera(args.camera)
+    else:
+        camera = None
     mirror = None
     if args.start_from:
         start = read_calibration(args.start_from).rig
@@ -73,18 +78,20 @@ def run(args) -> int:
     results = []
     for path, obs in zip(inputs, observations, strict=True):
         t0 = time.perf_counter()
+        log.info(f"calibrating {path}: the staged start, then the joint passes")
         try:
-            res, obs, notes = calibrate_detected(
-                obs,
-                camera=camera,
-                mirror=mirror,
-                freeze=freeze,
-                loss=args.loss,
-                loss_scale=args.loss_scale,
-                rigid=args.rigid,
-                options=options,
-                correct_centroids=not args.raw_centroids,
-            )
+            with progress_lines():
+                res, obs, notes = calibrate_detected(
+                    obs,
+                    camera=camera,
+                    mirror=mirror,
+                    freeze=freeze,
+                    loss=args.loss,
+                    loss_scale=args.loss_scale,
+                    rigid=args.rigid,
+                    options=options,
+                    correct_centroids=not args.raw_centroids,
+                )
         except CalibrationError as e:
             raise FormatError(f"{path}: {e}") from None
         print_placed(notes)

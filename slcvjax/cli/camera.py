@@ -5,7 +5,7 @@ import logging
 import numpy as np
 
 from ..observations.formats import FormatError, check_writable, write_calibration
-from .common import board_arg, export_opencv
+from .common import board_flags, export_opencv
 
 log = logging.getLogger(__name__)
 
@@ -16,13 +16,11 @@ def run(args) -> int:
     from ..geometry.rig import Rig
     from ..observations.formats import Calibration
 
-    cols, rows = board_arg(args.board)
-    if args.square <= 0:
-        raise FormatError(f"--square: must be positive, got {args.square}")
+    (cols, rows), square = board_flags(args)
     for target in [args.out] + ([args.export_opencv] if args.export_opencv else []):
-        check_writable(target)
+        check_writable(target, tuple(args.images))
     try:
-        res = calibrate_camera_images(args.images, (cols, rows), args.square)
+        res = calibrate_camera_images(args.images, (cols, rows), square)
     except CalibrationError as e:
         raise FormatError(str(e)) from None
     for name, r in res.per_view_rms_px.items():

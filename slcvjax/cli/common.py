@@ -129,27 +129,20 @@ def print_placed(notes: list[str]) -> None:
 
 
 def export_opencv(path, camera) -> None:
-    """Write a camera as OpenCV FileStorage YAML (camera_matrix, distortion_coefficients)."""
-    import cv2
+    """Write a camera as OpenCV FileStorage YAML (camera_matrix, distortion_coefficients), as
+    ``slcvjax export --format opencv`` does (:func:`slcvjax.experiments.export.write_opencv`)."""
+    from ..experiments.export import write_opencv
 
-    from ..observations.formats import OutputError, abandon_target, atomic_target, commit_target
+    write_opencv(path, camera, ["written by slcvjax"])
 
-    path, tmp = atomic_target(path, Path(path).suffix)  # FileStorage's format follows the suffix
-    try:
-        fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
-        if not fs.isOpened():
-            raise OutputError(f"{path}: cannot write: OpenCV cannot open it for writing")
-        fs.write("image_width", int(camera.width))
-        fs.write("image_height", int(camera.height))
-        fs.write("camera_matrix", np.asarray(camera.K, float))
-        fs.write("distortion_coefficients", np.asarray(camera.dist, float).reshape(1, 5))
-        fs.release()
-    except BaseException as e:
-        abandon_target(tmp)
-        if isinstance(e, cv2.error):
-            raise OutputError(f"{path}: cannot write: {e.err or e}") from None
-        raise
-    commit_target(path, tmp)
+
+def board_flags(args) -> tuple[tuple[int, int], float]:
+    """``--board`` and ``--square`` as ``((cols, rows), square_mm)``, checked the same way in every
+    command that takes them (``camera``, ``omni``)."""
+    pattern = board_arg(args.board)
+    if not (args.square > 0 and np.isfinite(args.square)):
+        raise FormatError(f"--square: must be a positive number of mm, got {args.square}")
+    return pattern, float(args.square)
 
 
 def board_arg(text: str) -> tuple[int, int]:
@@ -227,3 +220,23 @@ def write_pipe(out: Path, res: dict, points_name: str, noise: float) -> list[str
 
 def fmt_finite(x, nd=1, width=5):
     return f"{x:{width}.{nd}f}" if np.isfinite(x) else f"{'-':>{width}s}"
+
+
+class progress_lines:
+    """While it lasts, the calibration's passes are reported as they end (the ``slcvjax.progress``
+    logger at the command's level), after a line where the first run compiles."""
+
+    def __enter__(self):
+        from ..calibration.passes import progress
+        from ..support.cache import compile_note
+
+        self._logger, self._level = progress, progress.level
+        progress.setLevel(logging.getLogger("slcvjax").getEffectiveLevel())
+        note = compile_note()
+        if note:
+            log.info(note)
+        return self
+
+    def __exit__(self, *exc):
+        self._logger.setLevel(self._level)
+        return False

@@ -24,10 +24,22 @@ def _parse_axis(text: str | None):
 
 def run(args) -> int:
     from ..images.pipe import measure_observations, measurement_inputs, points_document, view_circle
-    from ..observations.formats import check_writable, read_calibration, read_observations, write_json_atomic
+    from ..observations.formats import (
+        check_writable,
+        read_calibration,
+        read_observations,
+        write_json_atomic,
+        write_text_atomic,
+    )
 
     cal = read_calibration(args.calibration)
-    check_writable(args.out, (args.calibration, args.input))
+    formats = [f.strip().lower() for f in args.formats.split(",") if f.strip()]
+    bad = [f for f in formats if f not in ("json", "csv", "ply")]
+    if bad or not formats:
+        raise ValueError(f"--format: expected json, csv or ply (comma-separated), got {args.formats!r}")
+    extra = [Path(args.out).with_suffix("." + f) for f in dict.fromkeys(formats) if f != "json"]
+    for target in [args.out, *extra]:
+        check_writable(target, (args.calibration, args.input))
     sigma_cal, cov = measurement_inputs(args.calibration, cal)
     sigma = args.pixel_sigma if args.pixel_sigma is not None else sigma_cal
     if sigma is None:
@@ -68,7 +80,11 @@ def run(args) -> int:
     }
     doc = points_document(names, views, circles, axis if args.fit_circle else None, meta)
     write_json_atomic(args.out, doc)
+    for target in extra:
+        from ..experiments.export import points_csv, points_ply
+
+        write_text_atomic(target, points_csv(doc) if target.suffix == ".csv" else points_ply(doc))
     print_points(names, views, circles)
     log.info(f"pixel sigma {sigma:.3f} px; uncertainty from {meta['uncertainty']}")
-    log.info(f"wrote {args.out}")
+    log.info("wrote " + ", ".join(str(t) for t in [args.out, *extra]))
     return 0

@@ -166,7 +166,21 @@ def _point_jacobians(camera: Camera, mirror: Mirror, grid, range_mm):
 _jacobians_jit = PersistentJit(_point_jacobians, "report_projection")
 
 
-def projection_std(rig: Rig, cov_glob, range_mm: float, n_grid: int = 64) -> dict:
+def rim_grid(rig: Rig, n_grid: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    """The columns and rows (px) of an ``n_grid`` x ``n_grid`` grid over the bounding box of the
+    mirror rim's image, within the sensor."""
+    uv_rim, ok = project_rim(rig, jnp.linspace(0.0, 2 * np.pi, 360, endpoint=False))
+    rim = np.asarray(uv_rim)[np.asarray(ok)]
+    w, h = int(rig.camera.width), int(rig.camera.height)
+    if len(rim):
+        lo = np.maximum(rim.min(axis=0), 0.0)
+        hi = np.minimum(rim.max(axis=0), [w - 1.0, h - 1.0])
+    else:
+        lo, hi = np.zeros(2), np.array([w - 1.0, h - 1.0])
+    return np.linspace(lo[0], hi[0], n_grid), np.linspace(lo[1], hi[1], n_grid)
+
+
+def projection_std(rig: Rig, cov_glob, range_mm: float, n_grid: int = 64, grid=None) -> dict:
     """The projection uncertainty over the mirror's image: per pixel of an ``n_grid`` x
     ``n_grid`` grid over the image of the mirror's rim, the std (mm) of the point where the
     pixel's reflected ray reaches ``range_mm`` from the camera's centre, propagated from the
@@ -179,21 +193,16 @@ def projection_std(rig: Rig, cov_glob, range_mm: float, n_grid: int = 64) -> dic
     ``sqrt(trace(J C J^T))`` with ``C`` the camera and mirror block of ``cov_glob``: the root of
     the sum of the three coordinates' variances, the pixel itself taken as exact.
 
+    ``grid``: ``(us, vs)``, the grid's columns and rows (px) where given (another calibration's,
+    to compare two), else ``n_grid`` of each over the rim's image.
+
     Returns ``{"u", "v"}`` (the grid's pixel centres, px), ``"std_mm"`` (len(v), len(u), NaN
     where the pixel sees no valid reflected ray or its ray does not reach the range) and
     ``"range_mm"``.
     """
     g = CAMERA_DOF + MIRROR_DOF
     cov = np.asarray(cov_glob, dtype=float)[:g, :g]
-    uv_rim, ok = project_rim(rig, jnp.linspace(0.0, 2 * np.pi, 360, endpoint=False))
-    rim = np.asarray(uv_rim)[np.asarray(ok)]
-    w, h = int(rig.camera.width), int(rig.camera.height)
-    if len(rim):
-        lo = np.maximum(rim.min(axis=0), 0.0)
-        hi = np.minimum(rim.max(axis=0), [w - 1.0, h - 1.0])
-    else:
-        lo, hi = np.zeros(2), np.array([w - 1.0, h - 1.0])
-    us, vs = np.linspace(lo[0], hi[0], n_grid), np.linspace(lo[1], hi[1], n_grid)
+    us, vs = rim_grid(rig, n_grid) if grid is None else (np.asarray(grid[0], float), np.asarray(grid[1], float))
     grid = jnp.asarray(np.stack(np.meshgrid(us, vs), axis=-1).reshape(-1, 2))
     jac, valid = _jacobians_jit(rig.camera, rig.mirror, grid, jnp.asarray(float(range_mm)))
     jac, valid = np.asarray(jac), np.asarray(valid)

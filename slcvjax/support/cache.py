@@ -90,6 +90,18 @@ def compilation_cache_dir() -> Path | None:
     return _IN_USE
 
 
+def compile_note() -> str | None:
+    """A line for a command about to calibrate where it will compile first (no traced program in
+    the cache yet, or the cache off), else None."""
+    folder = compilation_cache_dir()
+    if folder is None:
+        return "compiling (the compilation cache is off: every run compiles; about a minute)"
+    traces = folder / "traces"
+    if not traces.is_dir() or not any(traces.iterdir()):
+        return f"compiling, once; kept in the cache ({folder}): this first run takes about a minute longer"
+    return None
+
+
 def enable() -> Path | None:
     """Turn the persistent compilation cache on in :func:`chosen_dir`; returns the folder (None: off),
     which :func:`compilation_cache_dir` gives from then on."""
