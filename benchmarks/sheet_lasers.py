@@ -63,7 +63,9 @@ def one_rig(name: str, seeds: int, noise: float, n_views: int) -> dict:
         err["sheet_position"].append(p)
         err["sheet_normal"].append(n)
         err["sheet_angle"].append(a)
-        sp, sn, _ = sheet_std(res.rig, np.asarray(res.cov.glob), sheet_working_points(res.rig, res.params.poses, res.packed))
+        sp, sn, _ = sheet_std(
+            res.rig, np.asarray(res.cov.glob), sheet_working_points(res.rig, res.params.poses, res.packed)
+        )
         own["sheet_position"].append(p / sp)
         own["sheet_normal"].append(n / sn)
         if truth_rig.lasers.n:

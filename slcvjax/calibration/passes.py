@@ -6,9 +6,9 @@ may replace (the final pass refines the winners), and the first pass only far en
 the boards' flips again.
 """
 
+import dataclasses
 import logging
 import time
-import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
