@@ -83,45 +83,76 @@ def laser_std(rig: Rig, cov_glob: np.ndarray, x_ref: np.ndarray) -> tuple[np.nda
     return pos, ang
 
 
+RING_POINTS = 36  # a ring laser's working points: its cone at its working range, every 10 deg round its axis
+
+
 def sheet_working_points(rig: Rig, poses: Pose, pk: Packed) -> np.ndarray:
-    """Per line or ring laser, the point of its sheet nearest the mean of its stripe samples'
-    points on their boards (mm, camera frame; the samples' reflected rays on their boards' planes,
-    by ``rig``).  A sheet without samples takes its apex."""
+    """Per line or ring laser, :data:`RING_POINTS` points of its sheet where it is used (mm, camera
+    frame), (S, K, 3): a line laser's plane at the point nearest the mean of its stripe samples'
+    points (the samples' reflected rays on their boards' planes, by ``rig``), repeated; a ring
+    laser's cone at the mean distance of those points from its apex, every 10 deg round its axis
+    (a ring's mean point lies on its axis, where the cone is not).  A sheet without samples takes
+    100 mm from its apex."""
     from .sheet_fit import stripe_points
 
     n = rig.sheets.n if rig.has_sheets else 0
-    out = np.zeros((n, 3))
+    out = np.zeros((n, RING_POINTS, 3))
     if not n:
         return out
     pts, usable = stripe_points(rig.camera, rig.mirror, pk, unstack_poses(poses))
     sheet_of = np.asarray(pk.stripe_sheet)[: pts.shape[0]]
+    sh = rig.sheets
     for i in range(n):
         sel = usable & (sheet_of == i)
-        c = pts[sel].mean(axis=0) if sel.any() else np.asarray(rig.sheets.apex[i])
-        out[i] = np.asarray(rig.sheets.at_working_point(i, c)[0])
+        p, a, th = (np.asarray(x, float) for x in (sh.apex[i], sh.axis[i], sh.half_angle[i]))
+        if sh.kinds[i] == "plane":
+            c = pts[sel].mean(axis=0) if sel.any() else p + 100.0 * _across(a)
+            out[i] = c - ((c - p) @ a) * a
+            continue
+        rho = float(np.mean(np.linalg.norm(pts[sel] - p, axis=1))) if sel.any() else 100.0
+        e1 = _across(a)
+        e2 = np.cross(a, e1)
+        phi = np.linspace(0.0, 2 * np.pi, RING_POINTS, endpoint=False)
+        u = np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2
+        out[i] = p + rho * (np.cos(th) * a + np.sin(th) * u)
     return out
 
 
+def _across(a: np.ndarray) -> np.ndarray:
+    """A unit vector across the unit vector ``a``."""
+    h = np.eye(3)[int(np.argmin(np.abs(a)))]
+    e = h - (h @ a) * a
+    return e / np.linalg.norm(e)
+
+
 def sheet_variance(sheets: Sheets, i, x_ref, block) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Sheet ``i``'s variances at its working point ``x_ref`` (3,) from its block of a covariance
-    (its own tangent columns: 3 for a plane, 6 for a cone): of its position along its normal there
-    (mm^2), of its normal's direction (rad^2) and of its half-angle (rad^2; 0 for a plane)."""
+    """Sheet ``i``'s variances at its working points ``x_ref`` (K, 3) on it, from its block of a
+    covariance (its own tangent columns: 3 for a plane, 6 for a cone), each the mean over the
+    points: of its position along its normal (mm^2), of its normal's direction (rad^2), and of its
+    half-angle (rad^2; 0 for a plane)."""
 
-    def moved(d):
-        foot, normal, *_ = sheets.at_working_point(i, x_ref, d)
-        return jnp.dot(foot - x_ref, sheets.at_working_point(i, x_ref)[1]), normal
+    def at(x):
+        n0 = sheets.at_working_point(i, x)[1]
 
-    d0 = jnp.zeros(block.shape[0])
-    jp = jax.jacfwd(lambda d: moved(d)[0])(d0)
-    jn = jax.jacfwd(lambda d: moved(d)[1])(d0)
+        def moved(d):
+            foot, normal, *_ = sheets.at_working_point(i, x, d)
+            return jnp.dot(foot - x, n0), normal
+
+        d0 = jnp.zeros(block.shape[0])
+        jp = jax.jacfwd(lambda d: moved(d)[0])(d0)
+        jn = jax.jacfwd(lambda d: moved(d)[1])(d0)
+        return jp @ block @ jp, jnp.trace(jn @ block @ jn.T)
+
+    vp, vn = jax.vmap(at)(jnp.asarray(x_ref).reshape(-1, 3))
     var_angle = block[5, 5] if block.shape[0] == 6 else jnp.zeros(())
-    return jp @ block @ jp, jnp.trace(jn @ block @ jn.T), var_angle
+    return jnp.mean(vp), jnp.mean(vn), var_angle
 
 
 def sheet_std(rig: Rig, cov_glob: np.ndarray, x_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per line or ring laser (:func:`sheet_variance`): the std of its position along its normal at
-    ``x_ref`` (mm), of its normal (rad) and of its half-angle (rad; 0 for a plane); NaN where its
-    covariance block is not positive (undetermined)."""
+    """Per line or ring laser (:func:`sheet_variance` at its working points ``x_ref`` (S, K, 3)):
+    the std of its position along its normal (mm), of its normal (rad) and of its half-angle
+    (rad; 0 for a plane), RMS over the points; NaN where its covariance block is not positive
+    (undetermined)."""
     n = rig.sheets.n if rig.has_sheets else 0
     pos, nrm, ang = np.zeros(n), np.zeros(n), np.zeros(n)
     cov_glob = np.asarray(cov_glob)
@@ -140,19 +171,25 @@ def sheet_std(rig: Rig, cov_glob: np.ndarray, x_ref: np.ndarray) -> tuple[np.nda
 
 
 def sheet_errors(est: Rig, truth: Rig, x_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per line or ring laser: the distance (mm) from the true sheet's point ``x_ref`` to the
-    estimated sheet (first order, along its normal), the angle (rad) between the two sheets'
-    normals there, and the half-angle's error (rad; 0 for a plane)."""
+    """Per line or ring laser, against the truth at its working points ``x_ref`` (S, K, 3) on the
+    true sheet: the distance (mm) from each point to the estimated sheet (first order, along its
+    normal) and the angle (rad) between the two sheets' normals there, each RMS over the points,
+    and the half-angle's error (rad; 0 for a plane)."""
     n = truth.sheets.n
     pos, nrm, ang = np.zeros(n), np.zeros(n), np.zeros(n)
+    e, t = est.sheets, truth.sheets
     for i in range(n):
-        e, t, x = est.sheets, truth.sheets, jnp.asarray(x_ref[i])
-        g = sheet_value(x, e.apex[i], e.axis[i], e.half_angle[i])
-        ge = sheet_gradient(x, e.apex[i], e.axis[i], e.half_angle[i])
-        gt = sheet_gradient(x, t.apex[i], t.axis[i], t.half_angle[i])
-        pos[i] = abs(float(g)) / float(jnp.linalg.norm(ge))
-        ne, nt = np.asarray(ge) / np.linalg.norm(ge), np.asarray(gt) / np.linalg.norm(gt)
-        nrm[i] = np.arctan2(np.linalg.norm(np.cross(ne, nt)), abs(float(ne @ nt)))
+        x = jnp.asarray(x_ref[i]).reshape(-1, 3)
+        pe, ae, the = e.apex[i], e.axis[i], e.half_angle[i]
+        pt, at, tht = t.apex[i], t.axis[i], t.half_angle[i]
+        g = jax.vmap(sheet_value, in_axes=(0, None, None, None))(x, pe, ae, the)
+        ge = np.asarray(jax.vmap(sheet_gradient, in_axes=(0, None, None, None))(x, pe, ae, the))
+        gt = np.asarray(jax.vmap(sheet_gradient, in_axes=(0, None, None, None))(x, pt, at, tht))
+        ne = ge / np.linalg.norm(ge, axis=1, keepdims=True)
+        nt = gt / np.linalg.norm(gt, axis=1, keepdims=True)
+        d = np.asarray(g) / np.linalg.norm(ge, axis=1)
+        a = np.arctan2(np.linalg.norm(np.cross(ne, nt), axis=1), np.abs(np.sum(ne * nt, axis=1)))
+        pos[i], nrm[i] = np.sqrt(np.mean(d**2)), np.sqrt(np.mean(a**2))
         ang[i] = abs(float(e.half_angle[i]) - float(t.half_angle[i]))
     return pos, nrm, ang
 

@@ -214,8 +214,8 @@ def _element_uncertainty(result: CalibrationResult, cov, x_ref, pos, ang, held) 
             continue
         item = {
             "kind": kind,
-            "working_point": None if j in held_s else xs[j].tolist(),
-            "working_range_mm": None if j in held_s else float(np.linalg.norm(xs[j])),
+            "working_point": None if j in held_s else xs[j].mean(axis=0).tolist(),
+            "working_range_mm": None if j in held_s else float(np.mean(np.linalg.norm(xs[j], axis=1))),
             "position_std_mm": _finite_or_none(sp[j]),
             "direction_std_deg": _finite_or_none(np.degrees(sn[j])),
         }
