@@ -65,6 +65,7 @@ _ARRAYS = (
     "chess_pixels",
     "counts",
 )
+_STRIPE_ARRAYS = ("stripe_pose", "stripe_sheet", "stripe_pixels")  # where the rig has line or ring lasers
 _NONFINITE = {"nan": np.nan, "inf": np.inf, "-inf": -np.inf}
 
 
@@ -116,6 +117,9 @@ def problem_json(result: CalibrationResult) -> dict:
         "pair_block": None if pk.pair_block is None else array_json(pk.pair_block),
         "pair_box": None if pk.pair_box is None else array_json(pk.pair_box),
     }
+    if pk.has_stripes:
+        packed |= {name: array_json(getattr(pk, name)) for name in _STRIPE_ARRAYS}
+        packed["stripe_src"] = [list(k) for k in pk.stripe_src]
     try:
         version = metadata.version("slcvjax")
     except metadata.PackageNotFoundError:
@@ -164,7 +168,18 @@ def _staged(stages: dict, source: str) -> Staged:
         for r in _get(st, "reports", "stages.staged", source)
     ]
     rig = cal.rig
-    return Staged(rig.camera, rig.mirror, rig.lasers, [], {}, reports, None, cal.undetermined_lasers)
+    points, sheets = _split_undetermined(rig, cal.undetermined_lasers)
+    return Staged(rig.camera, rig.mirror, rig.lasers, [], {}, reports, None, points, rig.sheets, rig.kinds, sheets)
+
+
+def _split_undetermined(rig, elements) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """A file's undetermined lasers (their indices in the file) as the point lasers' and the
+    sheets' own indices."""
+    if not rig.kinds:
+        return tuple(elements), ()
+    local, kinds = rig.local_index, rig.element_kinds
+    points = tuple(int(local[e]) for e in elements if kinds[e] == "point")
+    return points, tuple(int(local[e]) for e in elements if kinds[e] != "point")
 
 
 def _repairs(doc, source: str) -> tuple[Repair, ...]:
@@ -230,7 +245,15 @@ def load_result(path: str | os.PathLike) -> CalibrationResult:
         k: None if pd.get(k) is None else _array(pd[k], f"problem.packed.{k}", source)
         for k in ("pair_block", "pair_box")
     }
+    stripes = {}
+    if pd.get("stripe_pose") is not None:
+        stripes = {
+            name: _array(_get(pd, name, "problem.packed", source), f"problem.packed.{name}", source)
+            for name in _STRIPE_ARRAYS
+        }
+        stripes["stripe_src"] = _keys(pd.get("stripe_src", []), "problem.packed.stripe_src", source)
     packed = Packed(
+        **stripes,
         **arrays,
         pose_keys=_keys(pd["pose_keys"], "problem.packed.pose_keys", source),
         chess_keys=_keys(pd["chess_keys"], "problem.packed.chess_keys", source),
@@ -269,6 +292,7 @@ def load_result(path: str | os.PathLike) -> CalibrationResult:
         )
         for p in joint["passes"]
     )
+    held_points, held_sheets = _split_undetermined(cal.rig, cal.undetermined_lasers)
     unc = _get(doc, "uncertainty", "", source)
     box = _box(unc["rigid_box"]) if unc.get("rigid_box") is not None else None
     if box is None:
@@ -296,7 +320,8 @@ def load_result(path: str | os.PathLike) -> CalibrationResult:
         kind_sigma,
         _repairs(_get(doc, "residuals", "", source).get("repairs", []), source),
         box,
-        cal.undetermined_lasers,
+        held_points,
         obs,
         options,
+        held_sheets,
     )
