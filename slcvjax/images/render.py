@@ -570,7 +570,7 @@ def scene_setup(scene, image_names: list[str], chess_names: list[str]):
                 r = np.linalg.norm(grid_uv - centre, axis=-1)
                 layout.y_dir = 1 if np.nanmedian(r[1] - r[0]) > 0 else -1
         boards[name] = layout
-    return Setup(
+    setup = Setup(
         image_size=(rig.camera.width, rig.camera.height),
         mirror_radius=float(rig.mirror.radius),
         mirror_height=float(rig.mirror.height),
@@ -580,6 +580,37 @@ def scene_setup(scene, image_names: list[str], chess_names: list[str]):
         chessboard_views=[(c, scene.chess_board) for c in chess_names],
         extra={"simulation": dict(scene.info)},
     )
+    if rig.has_sheets:
+        setup.n_lasers = rig.n_elements
+        setup.laser_kinds = list(rig.element_kinds)
+        setup.laser_azimuth_deg = _laser_azimuths(scene, centre)
+    return setup
+
+
+def _laser_azimuths(scene, centre: np.ndarray) -> list[float | None]:
+    """Each laser's image azimuth (deg) about ``centre`` as a user reads it off the first images
+    where it shows: a point laser's spot, a line laser's stripe's middle (the circular mean of its
+    exact pixels); None for a ring laser (and for a laser never seen)."""
+    from ..observations.simulate import visible_spots, visible_stripes
+    from .detect import azimuth_deg, circular_mean_deg
+
+    rig = scene.rig
+    out: list[float | None] = [None] * rig.n_elements
+    point_of = rig.point_elements
+    for v in range(len(scene.box_poses)):
+        for laser, _, _, uv in visible_spots(scene, v):
+            e = int(point_of[laser])
+            if out[e] is None:
+                out[e] = float(azimuth_deg(uv, centre)[0])
+        per_line: dict[int, list] = {}
+        for e, _, _, uv in visible_stripes(scene, v):
+            if rig.element_kinds[e] == "plane" and out[e] is None:
+                per_line.setdefault(e, []).append(uv)
+        for e, uvs in per_line.items():
+            out[e] = circular_mean_deg(azimuth_deg(np.concatenate(uvs), centre)) % 360.0
+        if all(a is not None for a, k in zip(out, rig.element_kinds, strict=True) if k != "cone"):
+            break
+    return out
 
 
 def scene_sheets(scene) -> tuple:
