@@ -80,7 +80,11 @@ def _derivatives(img: np.ndarray, sigma: float):
 
 
 def ridge_pixels(
-    light: np.ndarray, mask: np.ndarray, sigma: float = STRIPE_SIGMA_PX, threshold: float = 0.08
+    light: np.ndarray,
+    mask: np.ndarray,
+    sigma: float = STRIPE_SIGMA_PX,
+    threshold: float = 0.08,
+    curvature: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Steger's ridge pixels of ``light`` (H, W) inside ``mask`` (H, W bool).
 
@@ -88,7 +92,7 @@ def ridge_pixels(
     linked pieces of at least ``MIN_PIECE`` pixels, numbered from 0.  ``threshold``: the least
     smoothed light on the ridge (a profile of peak ``A`` and std ``w`` px is ``A w / sqrt(w^2 +
     sigma^2)`` there), and its curvature across at least ``threshold / (w^2 + sigma^2)`` at
-    ``w = 2 sigma``.
+    ``w = 2 sigma`` (or ``curvature`` where given: the least ``-d2/dn2`` of the smoothed light).
     """
     s, sx, sy, sxx, sxy, syy = _derivatives(light, sigma)
     # the Hessian's most negative eigenvalue and its unit eigenvector
@@ -103,7 +107,7 @@ def ridge_pixels(
     ok = norm > 1e-12
     nx, ny = np.where(ok, nx / np.where(ok, norm, 1), 1.0), np.where(ok, ny / np.where(ok, norm, 1), 0.0)
     t = -(sx * nx + sy * ny) / np.where(lam1 < 0, lam1, -1.0)
-    curv = threshold / (5.0 * sigma**2)
+    curv = threshold / (5.0 * sigma**2) if curvature is None else curvature
     cand = (
         mask
         & ok
@@ -230,3 +234,43 @@ def find_stripes(
         dropped["at a sharp bend"] = int(bend.sum())
     keep = ~spot & ~bend
     return StripeSamples(px[keep], nrm[keep], peak[keep], std[keep], piece[keep], dropped)
+
+
+def find_red_stripes(
+    bgr: np.ndarray,
+    mask: np.ndarray,
+    sigma: float = 2.0,
+    curvature: float = 0.01,
+    redness: float = 40.0,
+    min_span: float = 25.0,
+) -> StripeSamples:
+    """A red laser line's centre-line samples in a real camera's image, where the laser saturates
+    the sensor (its core white, its edges red) and lights surfaces of any colour.
+
+    The ridge of the red channel (``R / 255``; Steger's ridge pixels, :func:`ridge_pixels`, at
+    ``sigma`` px, the least curvature across ``curvature``, any level above 0.1), kept where red
+    dominates within 4 px (``R - max(G, B)`` above ``redness`` grey levels, blurred at 1 px: a
+    saturated core has a red rim) and in pieces at least ``min_span`` px across (a red lamp or a
+    spot is shorter).  The centres are Steger's (no Gaussian fit: a saturated profile has a flat
+    top).  ``mask``: (H, W) bool, where to look.
+    """
+    r, g, b = (bgr[:, :, k].astype(float) for k in (2, 1, 0))
+    px, nrm, piece = ridge_pixels(r / 255.0, mask, sigma, threshold=0.1, curvature=curvature)
+    dropped: dict = {}
+    if not len(px):
+        return StripeSamples(px, nrm, np.zeros(0), np.zeros(0), piece, dropped)
+    red = cv2.dilate(cv2.GaussianBlur(r - np.maximum(g, b), (0, 0), 1.0), np.ones((9, 9), np.uint8))
+    iu = np.clip(np.rint(px).astype(int), 0, [r.shape[1] - 1, r.shape[0] - 1])
+    keep = red[iu[:, 1], iu[:, 0]] > redness
+    if (~keep).any():
+        dropped["not red"] = int((~keep).sum())
+    short = np.zeros(len(px), bool)
+    for k in np.unique(piece[keep]):
+        sel = keep & (piece == k)
+        q = px[sel]
+        short[sel] = np.linalg.norm(q.max(axis=0) - q.min(axis=0)) < min_span
+    if short.any():
+        dropped["in a short piece"] = int(short.sum())
+    keep &= ~short
+    peak = r[iu[:, 1], iu[:, 0]] / 255.0
+    return StripeSamples(px[keep], nrm[keep], peak[keep], np.full(int(keep.sum()), sigma), piece[keep], dropped)
