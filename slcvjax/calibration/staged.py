@@ -31,7 +31,7 @@ from ..geometry.mirror import Mirror, back_project, mirror_of_shape
 from ..geometry.pose import Pose, so3_exp
 from ..geometry.rig import Rig
 from ..geometry.sheets import Sheets
-from ..observations.formats import Observations, SpotObs, ViewObs, shape_missing
+from ..observations.formats import Observations, SpotObs, StripeObs, ViewObs, shape_missing
 from ..observations.problem import (
     POSE_LADDER,
     Packed,
@@ -443,13 +443,21 @@ def staged(
     if len(mirrors) > 1:
         rep_m.notes.append(f"two-fold ambiguity resolved by the boards' fit: candidate {chosen + 1} kept")
     n_open = sum(s.board is None for v in obs.views for s in v.spots)
-    if n_open:
+    n_open_t = sum(len(s.pixels) for v in obs.views for s in v.stripes if s.board is None)
+    if n_open or n_open_t:
         view_poses: list[dict[str, Pose]] = [{} for _ in obs.views]
         for (vi, b), pose in zip(pk.pose_keys, poses, strict=True):
             view_poses[vi][b] = pose
         obs, n_set = assign_spot_boards(obs, camera, mirror, view_poses)
         pk = pack(obs)
-        rep_p.notes.append(f"{n_set} of {n_open} spots without a board put on the first board plane their ray meets")
+        if n_open:
+            msg = "spots without a board put on the first board plane their ray meets"
+            rep_p.notes.append(f"{n_set} of {n_open} {msg}")
+        if n_open_t:
+            n_t = n_open_t - sum(len(s.pixels) for v in obs.views for s in v.stripes if s.board is None)
+            rep_p.notes.append(
+                f"{n_t} of {n_open_t} stripe samples without a board put on the first board plane their ray meets"
+            )
     fit = fit_lasers(camera, mirror, pk, poses, obs.n_points, policy=policy)
     reports += [rep_m, rep_p, fit.report]
     if not obs.n_sheets:
@@ -473,12 +481,32 @@ def assign_spot_boards(
     board posed in some view has a pose in this one; a spot in a view where some board
     is missing keeps no board (and is not used).
     Returns new observations and how many spots got a board.
+
+    A stripe that names no board is split likewise, sample by sample: one stripe per board its
+    samples' rays meet first (in the order of its samples), and the samples that get none in a
+    stripe that still names no board.
     """
     walls = {b for poses in view_poses for b in poses}
     open_px = [s.pixel for v in obs.views for s in v.spots if s.board is None]
+    open_px += [p for v in obs.views for s in v.stripes if s.board is None for p in np.reshape(s.pixels, (-1, 2))]
     rays = map_padded(_back_many, camera, mirror, rows=np.reshape(np.asarray(open_px, dtype=float), (-1, 2)))
     orgs, dirs, oks = (np.asarray(a) for a in (rays.point, rays.direction, rays.valid))
     views, n_set, k = [], 0, 0
+
+    def first_plane(k, cands, n_walls):
+        org, d, ok = orgs[k], dirs[k], oks[k]
+        best, lam_best = None, np.inf
+        # only where every wall has a pose here: otherwise the first plane met may not be the right one
+        if ok and len(cands) == n_walls:
+            for b, pose in cands:
+                n, t = np.asarray(pose.R[:, 2]), np.asarray(pose.t)
+                den = n @ d
+                if abs(den) > 1e-9:
+                    lam = n @ (t - org) / den
+                    if 0 < lam < lam_best:
+                        best, lam_best = b, lam
+        return best
+
     for vi, v in enumerate(obs.views):
         spots = []
         here = view_poses[vi] if vi < len(view_poses) else {}
@@ -487,21 +515,24 @@ def assign_spot_boards(
             if s.board is not None:
                 spots.append(s)
                 continue
-            org, d, ok = orgs[k], dirs[k], oks[k]
+            best = first_plane(k, cands, len(walls))
             k += 1
-            best, lam_best = None, np.inf
-            # only where every wall has a pose here: otherwise the first plane met may not be the right one
-            if ok and len(cands) == len(walls):
-                for b, pose in cands:
-                    n, t = np.asarray(pose.R[:, 2]), np.asarray(pose.t)
-                    den = n @ d
-                    if abs(den) > 1e-9:
-                        lam = n @ (t - org) / den
-                        if 0 < lam < lam_best:
-                            best, lam_best = b, lam
             if best is not None:
                 s = SpotObs(s.laser, best, s.pixel)
                 n_set += 1
             spots.append(s)
-        views.append(ViewObs(v.name, v.boards, spots, v.rim, v.stripes))
-    return dataclasses.replace(obs, views=views), n_set
+        views.append([v, spots, cands])
+    out = []
+    for v, spots, cands in views:
+        stripes = []
+        for s in v.stripes:
+            if s.board is not None:
+                stripes.append(s)
+                continue
+            px = np.reshape(s.pixels, (-1, 2))
+            got = [first_plane(k + j, cands, len(walls)) for j in range(len(px))]
+            k += len(px)
+            for b in dict.fromkeys(got):
+                stripes.append(StripeObs(s.laser, b, px[[g == b for g in got]]))
+        out.append(ViewObs(v.name, v.boards, spots, v.rim, stripes))
+    return dataclasses.replace(obs, views=out), n_set

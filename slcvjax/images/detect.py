@@ -36,15 +36,18 @@ import cv2
 import numpy as np
 
 from ..observations.formats import (
+    LASER_KINDS,
     CalibrationViewObs,
     FormatError,
     Observations,
     SpotObs,
+    StripeObs,
     ViewObs,
     load_json,
     read_sensor_fields,
 )
 from ..observations.targets import check_disjoint_ids, grid_shape, read_board, spec_json
+from .stripes import StripeSamples, find_stripes
 
 SETUP_FORMAT = "slcv-setup/1"
 
@@ -93,6 +96,24 @@ class Setup:
     extra: dict = field(default_factory=dict)
     spot_sigma_mm: float | None = None  # the laser spots' Gaussian std on a surface, when known
     rigid_boards: list[str] = field(default_factory=list)  # targets fixed to each other (one box)
+    # each laser's kind (point, plane, cone) in order, when the setup has line or ring lasers
+    laser_kinds: list[str] | None = None
+    stripe_sigma_mm: float | None = None  # the stripes' Gaussian std across them on a surface, when known
+
+    @property
+    def kinds(self) -> list[str]:
+        """Each laser's kind in order (``point`` for all where the setup gives none)."""
+        return list(self.laser_kinds) if self.laser_kinds else ["point"] * self.n_lasers
+
+    @property
+    def point_lasers(self) -> list[int]:
+        """The index of each point laser (they draw spots), in order."""
+        return [i for i, k in enumerate(self.kinds) if k == "point"]
+
+    @property
+    def sheet_lasers(self) -> list[int]:
+        """The index of each line or ring laser (they draw stripes), in order."""
+        return [i for i, k in enumerate(self.kinds) if k != "point"]
 
 
 def setup_to_json(setup: Setup) -> dict:
@@ -115,7 +136,9 @@ def setup_to_json(setup: Setup) -> dict:
         "image_size": list(setup.image_size),
         "mirror_shape": {"kind": "cone", "radius": setup.mirror_radius, "height": setup.mirror_height},
         "n_lasers": setup.n_lasers,
-        "laser_azimuth_deg": None if setup.laser_azimuth_deg is None else [float(a) for a in setup.laser_azimuth_deg],
+        "laser_azimuth_deg": None
+        if setup.laser_azimuth_deg is None
+        else [None if a is None else float(a) for a in setup.laser_azimuth_deg],
         "boards": boards,
         "views": [{"image": v} for v in setup.views],
         "chessboard_views": [{"image": im, "board": b} for im, b in setup.chessboard_views],
@@ -124,6 +147,10 @@ def setup_to_json(setup: Setup) -> dict:
         doc["spot_sigma_mm"] = float(setup.spot_sigma_mm)
     if setup.rigid_boards:
         doc["rigid_boards"] = list(setup.rigid_boards)
+    if setup.laser_kinds:
+        doc["laser_kinds"] = list(setup.laser_kinds)
+    if setup.stripe_sigma_mm is not None:
+        doc["stripe_sigma_mm"] = float(setup.stripe_sigma_mm)
     doc.update(setup.extra)
     return doc
 
@@ -137,10 +164,26 @@ def read_setup(path: str | Path) -> Setup:
     (w, h), radius, height, n_lasers, shape = read_sensor_fields(ctx, doc)
     if shape is not None:
         ctx.fail("mirror_shape.kind", f"the detector supports the cone only, got {shape['kind']!r}")
+    kinds_doc = ctx.get(doc, "laser_kinds", "", list, optional=True)
+    laser_kinds = None
+    if kinds_doc is not None:
+        if len(kinds_doc) != n_lasers:
+            ctx.fail("laser_kinds", f"expected {n_lasers} kinds (n_lasers), got {len(kinds_doc)}")
+        for j, k in enumerate(kinds_doc):
+            if k not in LASER_KINDS:
+                ctx.fail(f"laser_kinds[{j}]", f"expected one of {', '.join(LASER_KINDS)}, got {json.dumps(k)[:40]}")
+        laser_kinds = [str(k) for k in kinds_doc]
     az = ctx.get(doc, "laser_azimuth_deg", "", list, optional=True)
     laser_az = None
     if az is not None:
-        laser_az = list(ctx.vector(az, n_lasers, "laser_azimuth_deg"))
+        if len(az) != n_lasers:
+            ctx.fail("laser_azimuth_deg", f"expected a list of {n_lasers} numbers, got length {len(az)}")
+        # a ring laser has no azimuth: null there (and for a laser whose azimuth is not known)
+        laser_az = [None if a is None else ctx.number(a, f"laser_azimuth_deg[{i}]") for i, a in enumerate(az)]
+        kinds = laser_kinds or ["point"] * n_lasers
+        for i, a in enumerate(laser_az):
+            if a is None and kinds[i] != "cone":
+                ctx.fail(f"laser_azimuth_deg[{i}]", f"null, but laser {i} is a {kinds[i]} laser (only a ring has none)")
     boards = {}
     for name, b in ctx.get(doc, "boards", "", dict).items():
         where = f"boards.{name}"
@@ -194,9 +237,18 @@ def read_setup(path: str | Path) -> Setup:
     for i, b in enumerate(rigid):
         if not isinstance(b, str) or b not in boards:
             ctx.fail(f"rigid_boards[{i}]", f"unknown board {json.dumps(b)[:40]} (known: {', '.join(sorted(boards))})")
+    stripe_sigma = ctx.get(doc, "stripe_sigma_mm", "", optional=True)
+    if stripe_sigma is not None:
+        stripe_sigma = ctx.number(stripe_sigma, "stripe_sigma_mm")
+        if not stripe_sigma > 0:
+            ctx.fail("stripe_sigma_mm", f"must be positive, got {json.dumps(stripe_sigma)}")
     known = {"format", "image_size", "mirror_shape", "n_lasers", "laser_azimuth_deg", "boards", "views"}
-    extra = {k: v for k, v in doc.items() if k not in known | {"chessboard_views", "spot_sigma_mm", "rigid_boards"}}
-    return Setup((w, h), radius, height, n_lasers, boards, views, chess, laser_az, extra, spot_sigma, list(rigid))
+    known |= {"chessboard_views", "spot_sigma_mm", "rigid_boards", "laser_kinds", "stripe_sigma_mm"}
+    extra = {k: v for k, v in doc.items() if k not in known}
+    return Setup(
+        (w, h), radius, height, n_lasers, boards, views, chess, laser_az, extra, spot_sigma, list(rigid),
+        laser_kinds, stripe_sigma,
+    )  # fmt: skip
 
 
 # --------------------------------------------------------------------------- images
@@ -496,7 +548,12 @@ def _with_faint_edges(labels: np.ndarray, faint: np.ndarray) -> np.ndarray:
 
 
 def find_spots(
-    bgr: np.ndarray, disc: MirrorDisc, threshold: float = 25.0, edge: int = 2, support: float = SPOT_SUPPORT
+    bgr: np.ndarray,
+    disc: MirrorDisc,
+    threshold: float = 25.0,
+    edge: int = 2,
+    support: float = SPOT_SUPPORT,
+    exclude: np.ndarray | None = None,
 ) -> np.ndarray:
     """Laser spots inside the mirror's disc: (S, 2) centroids.
 
@@ -507,7 +564,9 @@ def find_spots(
     spot whose bright part (above ``threshold``, and 2 px around) meets a dot's image is
     skipped: the blur mixes the dot's darkness into the ratio at the dot's edge, and the
     centroid moves by up to a fifth of a pixel.  A spot closer than ``edge`` px to the disc's outline is skipped: the
-    rim cuts its image, and its centroid would lie off its centre.
+    rim cuts its image, and its centroid would lie off its centre.  ``exclude`` (H, W bool, or
+    None): a region of red light that meets it is not a spot (a line or ring laser's stripe,
+    and a spot on it).
     """
     red = bgr[:, :, 2].astype(float) - bgr[:, :, 1].astype(float)
     red = cv2.GaussianBlur(red, (0, 0), 0.7)
@@ -525,6 +584,8 @@ def find_spots(
         if stats[k, cv2.CC_STAT_AREA] < 2:
             continue
         if not core[labels == k].all():
+            continue
+        if exclude is not None and exclude[labels == k].any():
             continue
         bright = cv2.dilate((labels == k).astype(np.uint8), grow).astype(bool)
         if not dotted[bright].any():
@@ -898,16 +959,30 @@ class ImageDetection:
     spots: np.ndarray
     green: np.ndarray | None = None  # the image's green channel, for evidence where dots were not found
     faint: np.ndarray | None = None  # (K,) which dots are faint streaks (``find_dots(with_faint=True)``)
+    stripes: StripeSamples | None = None  # the stripes' centre-line samples, where looked for
 
 
-def detect_catadioptric(bgr: np.ndarray, name: str = "") -> ImageDetection:
-    """Rim pixels, dot centroids and spot centroids of one catadioptric image (unlabelled)."""
+def detect_catadioptric(bgr: np.ndarray, name: str = "", stripes: bool = False) -> ImageDetection:
+    """Rim pixels, dot centroids and spot centroids of one catadioptric image (unlabelled); with
+    ``stripes``, also the centre-line samples of line and ring lasers' stripes
+    (:func:`slcvjax.images.stripes.find_stripes`, away from the dots), and no spot is taken
+    from a stripe's light."""
     green = bgr[:, :, 1].astype(float)
     disc = find_mirror(green)
     if disc is None:
         return ImageDetection(name, None, np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2)))
     dots, faint = find_dots(green, disc, with_faint=True)
-    return ImageDetection(name, disc, find_rim(green, disc), dots, find_spots(bgr, disc), green, faint)
+    if not stripes:
+        return ImageDetection(name, disc, find_rim(green, disc), dots, find_spots(bgr, disc), green, faint)
+    wall = wall_level(green, disc)
+    dotted = (wall - green > DOT_SUPPORT * (wall - disc.outside_level)) & disc.mask
+    st = find_stripes(bgr, disc.mask, dotted)
+    lit = np.zeros(disc.mask.shape, np.uint8)
+    iu = np.clip(np.rint(st.pixels).astype(int), 0, [lit.shape[1] - 1, lit.shape[0] - 1])
+    lit[iu[:, 1], iu[:, 0]] = 1
+    lit = cv2.dilate(lit, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (7, 7))).astype(bool)
+    spots = find_spots(bgr, disc, exclude=lit)
+    return ImageDetection(name, disc, find_rim(green, disc), dots, spots, green, faint, st)
 
 
 def label_boards(
@@ -993,6 +1068,16 @@ def _place_with_faint(det: ImageDetection, strong: np.ndarray, faint: list[int],
     return (px, seen) if same and seen.sum() > got[1].sum() else got
 
 
+def _wall_azimuths(det: ImageDetection, walls: dict[str, BoardLayout], seen_boards: dict) -> dict[str, float]:
+    """Each wall target's azimuth in one image (deg): its dots' circular mean where found, else
+    the nominal one."""
+    out = {}
+    for name, layout in walls.items():
+        px, seen = seen_boards[name]
+        out[name] = circular_mean_deg(azimuth_deg(px[seen], det.disc.centre)) if seen.any() else layout.azimuth_deg
+    return out
+
+
 def _spot_board(az: float, wall_az: dict[str, float], margin: float) -> str | None:
     """The wall target nearest in azimuth, or None within ``margin`` deg of the bisector of the two nearest."""
     if not wall_az:
@@ -1021,8 +1106,11 @@ def label_spots(
     targets the spot may lie on either wall (where the corner falls depends on the
     sensor's position), so its board is left null: the calibration puts it on the
     first board plane its reflected ray meets, once the boards' poses are known.
+    With line or ring lasers in the setup (``laser_kinds``) only the point lasers draw spots:
+    ``n_lasers`` above counts those, and a spot's laser is its index among all lasers.
     """
-    n = setup.n_lasers
+    point_of = setup.point_lasers
+    n = len(point_of)
     problems: list[list[str]] = [[] for _ in dets]
     spots_out: list[list[SpotObs]] = [[] for _ in dets]
     all_az, owner = [], []
@@ -1036,7 +1124,7 @@ def label_spots(
         return spots_out, problems
     all_az = np.array(all_az)
     if setup.laser_azimuth_deg is not None:
-        centres = np.asarray(setup.laser_azimuth_deg, float) % 360.0
+        centres = np.asarray([setup.laser_azimuth_deg[i] for i in point_of], float) % 360.0
     else:
         groups = _split_by_azimuth(all_az, n)
         centres = np.array([circular_mean_deg(all_az[g]) % 360 for g in groups])
@@ -1062,12 +1150,7 @@ def label_spots(
             continue
         idx = [k for k, (o, _) in enumerate(owner) if o == i]
         lab = label[idx]
-        wall_az = {}
-        for name, layout in walls.items():
-            px, seen = boards_seen[i][name]
-            wall_az[name] = (
-                circular_mean_deg(azimuth_deg(px[seen], d.disc.centre)) if seen.any() else layout.azimuth_deg
-            )
+        wall_az = _wall_azimuths(d, walls, boards_seen[i])
         for k, li in zip(idx, lab, strict=True):
             j = owner[k][1]
             px = d.spots[j]
@@ -1075,15 +1158,96 @@ def label_spots(
                 problems[i].append(f"spot at ({px[0]:.1f}, {px[1]:.1f}) matches no laser's azimuth; left out")
                 continue
             if np.sum(lab == li) > 1:
-                problems[i].append(f"laser {li}: {int(np.sum(lab == li))} spots; left out")
+                problems[i].append(f"laser {point_of[li]}: {int(np.sum(lab == li))} spots; left out")
                 continue
             board = _spot_board(all_az[k], wall_az, corner_margin)
-            spots_out[i].append(SpotObs(int(li), board, px.copy()))
+            spots_out[i].append(SpotObs(int(point_of[li]), board, px.copy()))
         found = {s.laser for s in spots_out[i]}
-        missing = [str(k) for k in range(n) if k not in found]
+        missing = [str(k) for k in point_of if k not in found]
         if missing:
             problems[i].append(f"no spot for laser {', '.join(missing)}")
     return spots_out, problems
+
+
+def label_stripes(
+    dets: list[ImageDetection],
+    setup: Setup,
+    boards_seen: list[dict[str, tuple[np.ndarray, np.ndarray]]],
+    corner_margin: float = 15.0,
+) -> tuple[list[list[StripeObs]], list[list[str]]]:
+    """Label every image's stripe samples with their laser and their board; returns the stripes
+    and the problems per image.
+
+    A sample's laser: with one ring laser (``cone``) and no line laser, every sample is the
+    ring's (it draws one closed curve about the mirror's axis); with line lasers alone, the line
+    laser whose azimuth (``setup.laser_azimuth_deg``: the image azimuth of the middle of its
+    fan) is nearest, within half the spacing of their azimuths (one line laser with no
+    azimuth takes every sample).  Anything else (a ring with other line or ring lasers, line
+    lasers with no azimuths) cannot be told apart by azimuth: those samples are left out and
+    reported.  A sample's board is the wall target nearest in azimuth, as a spot's
+    (:func:`label_spots`): null within ``corner_margin`` deg of the bisector of two targets (the
+    calibration puts it on the first board plane its ray meets).  One stripe per laser and board
+    (or null) in each image, its samples in order of azimuth.  What the detector left out
+    (:attr:`StripeSamples.dropped`) is reported too.
+    """
+    sheets = setup.sheet_lasers
+    kinds = setup.kinds
+    out: list[list[StripeObs]] = [[] for _ in dets]
+    problems: list[list[str]] = [[] for _ in dets]
+    if not sheets:
+        return out, problems
+    rings = [i for i in sheets if kinds[i] == "cone"]
+    lines = [i for i in sheets if kinds[i] == "plane"]
+    azs = setup.laser_azimuth_deg
+    why = None
+    centres = None
+    if len(rings) == 1 and not lines:
+        pass
+    elif not rings and len(lines) == 1 and (azs is None or azs[lines[0]] is None):
+        pass
+    elif not rings and azs is not None:
+        centres = np.asarray([azs[i] for i in lines], float) % 360.0
+    elif rings:
+        why = "a ring laser's stripe cannot be told from other line or ring lasers' by azimuth"
+    else:
+        why = "line lasers need setup.json's laser_azimuth_deg (each fan's middle in the image)"
+    walls = {k: b for k, b in setup.boards.items() if b.azimuth_deg is not None}
+    for i, d in enumerate(dets):
+        st = d.stripes
+        if d.disc is None or st is None:
+            continue
+        for reason, k in st.dropped.items():
+            problems[i].append(f"{k} stripe samples {reason}; left out")
+        if not len(st.pixels):
+            problems[i].append(f"no stripe for laser {', '.join(map(str, sheets))}")
+            continue
+        az = azimuth_deg(st.pixels, d.disc.centre)
+        if why is not None:
+            problems[i].append(f"{len(az)} stripe samples: {why}; left out")
+            continue
+        if centres is None:
+            label = np.full(len(az), (rings or lines)[0])
+        else:
+            n = len(centres)
+            spacing = np.min(np.abs(_wrap(centres[:, None] - centres[None, :])) + 360 * np.eye(n)) if n > 1 else 360.0
+            dist = np.abs(_wrap(az[:, None] - centres[None, :]))
+            j = np.argmin(dist, axis=1)
+            label = np.where(dist[np.arange(len(az)), j] < 0.5 * spacing, np.asarray(lines)[j], -1)
+            if (label < 0).any():
+                problems[i].append(f"{int((label < 0).sum())} stripe samples match no line laser's azimuth; left out")
+        wall_az = _wall_azimuths(d, walls, boards_seen[i])
+        board = np.array([_spot_board(a, wall_az, corner_margin) for a in az], dtype=object)
+        for laser in sheets:
+            sel = label == laser
+            if not sel.any():
+                problems[i].append(f"no stripe for laser {laser}")
+                continue
+            rel = _wrap(az - circular_mean_deg(az[sel]))
+            for b in dict.fromkeys(board[sel]):
+                part = np.flatnonzero(sel & np.array([x == b for x in board]))
+                order = part[np.argsort(rel[part])]
+                out[i].append(StripeObs(int(laser), b, st.pixels[order].copy()))
+    return out, problems
 
 
 def _well_separated(az: np.ndarray, groups: list[np.ndarray]) -> bool:
@@ -1117,6 +1281,11 @@ def detect_chessboard(bgr: np.ndarray, cols: int, rows: int) -> np.ndarray | Non
     return corners.reshape(-1, 2).astype(float)
 
 
+def _stripe_leftout(p: str) -> bool:
+    """Whether a problem line counts stripe samples left out (``"N stripe samples ...; left out"``)."""
+    return p.endswith("left out") and " stripe samples" in p and p.split()[0].isdigit()
+
+
 @dataclass
 class DetectionReport:
     """Per image, what could not be found (empty lists where all was found)."""
@@ -1139,7 +1308,8 @@ class DetectionReport:
             "boards left out": sum("board left out" in p for p in probs),
             "ambiguous rows": sum("ambiguous rows" in p for p in probs),
             "missing spots": sum(p.count(",") + 1 for p in probs if p.startswith("no spot for laser")),
-            "spots left out": sum(p.endswith("left out") and ("spot" in p) for p in probs),
+            "spots left out": sum(p.endswith("left out") and ("spot" in p) and ("stripe" not in p) for p in probs),
+            "stripe samples left out": sum(int(p.split()[0]) for p in probs if _stripe_leftout(p)),
         }
         with_problems = sum(1 for ps in self.problems.values() if ps)
         listed = ", ".join(f"{v} {k}" for k, v in kinds.items() if v)
@@ -1179,7 +1349,8 @@ def detect_folder(folder: str | Path, progress: bool = False) -> tuple[Observati
             continue
         counts[name] = {"corners": len(corners)}
         cal_views.append(CalibrationViewObs(name, b, corners, np.ones(len(corners), bool)))
-    dets = [detect_catadioptric(images[v], Path(v).stem) for v in setup.views]
+    with_stripes = bool(setup.sheet_lasers)
+    dets = [detect_catadioptric(images[v], Path(v).stem, stripes=with_stripes) for v in setup.views]
     boards_seen, board_probs, ambiguous = [], [], []
     for v, d in enumerate(dets):
         cands: dict = {}
@@ -1190,9 +1361,12 @@ def detect_folder(folder: str | Path, progress: bool = False) -> tuple[Observati
             options = [{"pixels": px[sn].tolist(), "indices": np.flatnonzero(sn).tolist()} for px, sn in placed]
             ambiguous.append({"view": v, "board": b, "candidates": options})
     spots, spot_probs = label_spots(dets, setup, boards_seen)
+    stripes, stripe_probs = label_stripes(dets, setup, boards_seen)
     views = []
-    for d, bs, bp, sp, spp in zip(dets, boards_seen, board_probs, spots, spot_probs, strict=True):
-        p = ([] if d.disc is not None else ["no mirror found"]) + bp + spp
+    for d, bs, bp, sp, spp, st, stp in zip(
+        dets, boards_seen, board_probs, spots, spot_probs, stripes, stripe_probs, strict=True
+    ):
+        p = ([] if d.disc is not None else ["no mirror found"]) + bp + spp + stp
         if p:
             problems[d.name] = p
         counts[d.name] = {
@@ -1200,7 +1374,9 @@ def detect_folder(folder: str | Path, progress: bool = False) -> tuple[Observati
             "spots": len(sp),
             "rim pixels": len(d.rim),
         }
-        views.append(ViewObs(d.name, bs, sp, d.rim))
+        if with_stripes:
+            counts[d.name]["stripe samples"] = int(sum(len(x.pixels) for x in st))
+        views.append(ViewObs(d.name, bs, sp, d.rim, st))
     obs = Observations(
         image_size=setup.image_size,
         mirror_radius=setup.mirror_radius,
@@ -1210,12 +1386,14 @@ def detect_folder(folder: str | Path, progress: bool = False) -> tuple[Observati
         calibration_views=cal_views,
         views=views,
         board_types={k: b.target for k, b in setup.boards.items() if b.target is not None},
+        laser_kinds=tuple(setup.laser_kinds) if setup.laser_kinds else (),
         extra={
             "detection": {
                 "folder": str(folder),
                 "problems": problems,
                 "dot_radius_mm": {k: b.dot_radius_mm for k, b in setup.boards.items() if b.dot_radius_mm},
                 "spot_sigma_mm": setup.spot_sigma_mm,
+                **({"stripe_sigma_mm": setup.stripe_sigma_mm} if setup.stripe_sigma_mm is not None else {}),
                 "ambiguous_boards": ambiguous,
             },
             **({"rigid_boards": list(setup.rigid_boards)} if setup.rigid_boards else {}),

@@ -33,6 +33,8 @@ from ..geometry.lasers import line_plane_intersection
 from ..geometry.mirror import ConeMirror, back_project, body_clearance
 from ..geometry.pose import Pose
 from ..geometry.rig import project_board_points, project_rim
+from ..geometry.sheets import sheet_gradient, sheet_value
+from ..support.safe import safe_div, safe_norm, safe_normalize
 from .pipe import beam_pipe_point
 
 WALL = 0.72
@@ -59,6 +61,9 @@ class RenderOptions:
         dot_radius_mm: radius of the printed dots on the walls.
         spot_sigma_mm: std of the laser spot's Gaussian profile on the wall.
         spot_power: peak red radiance of a spot on white paper (it saturates above 1).
+        stripe_sigma_mm: std of a line or ring laser's stripe across it, on the surface (mm).
+        stripe_power: peak red radiance of a stripe on white paper (below
+            ``1 - MIRROR_REFLECTANCE * WALL`` / ``MIRROR_REFLECTANCE`` ~ 0.37 it does not saturate).
         body_radius_mm: radius of the sensor's body around the mirror axis (its dark reflection).
         body_gap_mm: the body ends this far before the apex, along the axis.
         seed: seed of the sensor noise.
@@ -72,6 +77,8 @@ class RenderOptions:
     dot_radius_mm: float = 1.6
     spot_sigma_mm: float = 0.8
     spot_power: float = 0.9
+    stripe_sigma_mm: float = 0.5
+    stripe_power: float = 0.3
     body_radius_mm: float = 12.0
     body_gap_mm: float = 8.0
     seed: int = 0
@@ -86,6 +93,8 @@ class RenderOptions:
             "dot_radius_mm": self.dot_radius_mm > 0,
             "spot_sigma_mm": self.spot_sigma_mm > 0,
             "spot_power": self.spot_power >= 0,
+            "stripe_sigma_mm": self.stripe_sigma_mm > 0,
+            "stripe_power": self.stripe_power >= 0,
             "body_radius_mm": self.body_radius_mm >= 0,
         }
         for name, ok in checks.items():
@@ -129,7 +138,39 @@ def _cata_ray(cam, mirror, uv, body_radius, body_gap):
     return ray.point, ray.direction, ray.valid, ray.valid & ~body
 
 
-def _cata_shade(origin, direction, valid, seen, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts):
+def _stripe_light(x, normal, apex, axis, half_angle, fan, on, sopts):
+    """The red radiance (on white paper) that line and ring lasers' light adds at a surface point.
+
+    Args:
+        x: (3,) the surface point, camera frame, mm.
+        normal: (3,) the surface's unit normal there.
+        apex, axis, half_angle: (K, 3), (K, 3), (K,) the sheets (:class:`slcvjax.geometry.sheets.Sheets`).
+        fan: (K, 2) rad: each sheet's fan as the camera-frame azimuth of its emission direction
+            ``x - apex``, from ``fan[k, 0]`` over ``fan[k, 1]`` (more than 2 pi: all round).
+        on: (K,) bool, the sheets drawn (the rest is padding).
+        sopts: (2,) the stripe's std across it on the surface (mm) and its peak power.
+
+    Each stripe is a Gaussian across the curve where its sheet meets the surface, of std
+    ``sopts[0]`` in the surface's distance to that curve: to first order ``|G(x)| / |grad_t G|``
+    with ``G`` the sheet's value (:func:`slcvjax.geometry.sheets.sheet_value`) and ``grad_t G`` its
+    gradient projected on the surface's tangent plane.  Returns the sum over the sheets, ().
+    """
+
+    def one(p, a, th, f, k):
+        g = sheet_value(x, p, a, th)
+        grad = sheet_gradient(x, p, a, th)
+        tangential = safe_norm(grad - jnp.dot(grad, normal) * normal)
+        d = safe_div(jnp.abs(g), tangential, eps=1e-12)
+        q = x - p
+        az = jnp.arctan2(q[1], q[0])
+        in_fan = jnp.mod(az - f[0], 2 * jnp.pi) <= f[1]
+        light = jnp.exp(-0.5 * jnp.minimum(d / sopts[0], 1e3) ** 2)
+        return jnp.where(k & in_fan & (tangential > 1e-9), light, 0.0)
+
+    return sopts[1] * jnp.sum(jax.vmap(one)(apex, axis, half_angle, fan, on))
+
+
+def _cata_shade(origin, direction, valid, seen, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts, sheets=None):
     w, hit, xy, x = _wall_hit(origin, direction, walls_R, walls_t)
     d2 = jnp.min(jnp.sum((dots[w] - xy) ** 2, axis=1))
     albedo = jnp.where(d2 < opts[0] ** 2, DOT, WALL)
@@ -138,20 +179,26 @@ def _cata_shade(origin, direction, valid, seen, walls_R, walls_t, dots, spots, s
     seen = seen & hit
     grey = MIRROR_REFLECTANCE * albedo
     red = grey + MIRROR_REFLECTANCE * albedo / WALL * opts[2] * laser
+    if sheets is not None:  # only with line or ring lasers: a rig of point lasers renders as before
+        red = red + MIRROR_REFLECTANCE * albedo / WALL * _stripe_light(x, walls_R[w][:, 2], *sheets)
     mirror_px = jnp.where(valid, BODY, BACKGROUND)
     g = jnp.where(seen, grey, mirror_px)
     r = jnp.where(seen, red, mirror_px)
     return jnp.stack([g, g, r])  # BGR
 
 
-def _pipe_shade(origin, direction, valid, seen, centre, axis, radius, spots, spot_on, opts):
-    """A sample inside a pipe: its inner wall is plain paper-white, lit by the laser spots."""
+def _pipe_shade(origin, direction, valid, seen, centre, axis, radius, spots, spot_on, opts, sheets=None):
+    """A sample inside a pipe: its inner wall is plain paper-white, lit by the laser spots (and
+    the stripes of ``sheets``, :func:`_stripe_light`'s arguments, where given)."""
     x, hit = beam_pipe_point(origin, direction, centre, axis, radius)
     s2 = jnp.min(jnp.where(spot_on, jnp.sum((spots - x) ** 2, axis=1), jnp.inf))
     laser = jnp.exp(-0.5 * jnp.minimum(s2, 1e6) / opts[1] ** 2)
     seen = seen & hit
     grey = MIRROR_REFLECTANCE * WALL
     red = grey + MIRROR_REFLECTANCE * opts[2] * laser
+    if sheets is not None:  # only with line or ring lasers: a rig of point lasers renders as before
+        radial = (x - centre) - jnp.dot(x - centre, axis) * axis
+        red = red + MIRROR_REFLECTANCE * _stripe_light(x, safe_normalize(radial), *sheets)
     mirror_px = jnp.where(valid, BODY, BACKGROUND)
     g = jnp.where(seen, grey, mirror_px)
     r = jnp.where(seen, red, mirror_px)
@@ -179,14 +226,14 @@ def _cata_rays(cam, mirror, samples, body):
 
 
 @jax.jit
-def _cata_band(rays, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts):
-    f = lambda o, d, v, s: _cata_shade(o, d, v, s, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts)  # noqa: E731
+def _cata_band(rays, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts, sheets=None):
+    f = lambda o, d, v, s: _cata_shade(o, d, v, s, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts, sheets)  # noqa: E731
     return jax.lax.map(lambda r: jax.vmap(f)(*r), rays)
 
 
 @jax.jit
-def _pipe_band(rays, centre, axis, radius, spots, spot_on, opts):
-    f = lambda o, d, v, s: _pipe_shade(o, d, v, s, centre, axis, radius, spots, spot_on, opts)  # noqa: E731
+def _pipe_band(rays, centre, axis, radius, spots, spot_on, opts, sheets=None):
+    f = lambda o, d, v, s: _pipe_shade(o, d, v, s, centre, axis, radius, spots, spot_on, opts, sheets)  # noqa: E731
     return jax.lax.map(lambda r: jax.vmap(f)(*r), rays)
 
 
@@ -209,16 +256,16 @@ def _fine_rays(cam, mirror, body, centres, offsets):
 
 
 @jax.jit
-def _cata_shade_rays(rays, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts):
+def _cata_shade_rays(rays, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts, sheets=None):
     """Each cell's mean radiance in the box from its samples' reflected rays (:func:`_fine_rays`)."""
-    f = lambda o, d, v, s: _cata_shade(o, d, v, s, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts)  # noqa: E731
+    f = lambda o, d, v, s: _cata_shade(o, d, v, s, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts, sheets)  # noqa: E731
     return jax.vmap(jax.vmap(f))(*rays).mean(axis=1)
 
 
 @jax.jit
-def _pipe_shade_rays(rays, centre, axis, radius, spots, spot_on, opts):
+def _pipe_shade_rays(rays, centre, axis, radius, spots, spot_on, opts, sheets=None):
     """Each cell's mean radiance inside a pipe from its samples' reflected rays (:func:`_fine_rays`)."""
-    f = lambda o, d, v, s: _pipe_shade(o, d, v, s, centre, axis, radius, spots, spot_on, opts)  # noqa: E731
+    f = lambda o, d, v, s: _pipe_shade(o, d, v, s, centre, axis, radius, spots, spot_on, opts, sheets)  # noqa: E731
     return jax.vmap(jax.vmap(f))(*rays).mean(axis=1)
 
 
@@ -393,6 +440,8 @@ class Renderer:
         boards: dict[str, np.ndarray],
         spots: list[tuple[str, np.ndarray]],
         seed: int = 0,
+        sheets=None,
+        fans: dict | None = None,
     ) -> np.ndarray:
         """One catadioptric image (BGR uint8, ``height x width``).
 
@@ -401,6 +450,11 @@ class Renderer:
             boards: each wall's dot centres in its board frame (M, 3), mm.
             spots: each visible laser spot's wall and 3D point (camera frame, mm).
             seed: seed of this image's sensor noise.
+            sheets: line and ring lasers (:class:`slcvjax.geometry.sheets.Sheets`, camera frame)
+                whose light draws stripes on the walls, or None (none: the image is the same as
+                without the argument, bit for bit).
+            fans: per sheet (its index among ``sheets``) the fan's camera-frame azimuth limits
+                (deg, from, to) of its emission directions; a sheet not listed shines all round.
         """
         if self._rays is None:
             raise ValueError("this renderer has no mirror; it renders direct views only")
@@ -422,14 +476,33 @@ class Renderer:
         opts = jnp.asarray([o.dot_radius_mm, o.spot_sigma_mm, o.spot_power], dtype=float)
         scene = (walls_R, walls_t, jnp.asarray(dots), jnp.asarray(spot_xyz), jnp.asarray(spot_wall),
                  jnp.asarray(spot_wall >= 0), opts)  # fmt: skip
+        if sheets is not None and sheets.n:
+            scene = (*scene, self._sheet_args(sheets, fans))
         out = self._unpack(_cata_band(self._seen_rays, *scene))
         shade = lambda rays: _cata_shade_rays(rays, *scene)  # noqa: E731
         return _finish(self._cells(out, self._traced(shade), shade), o, seed)
 
-    def pipe(self, centre, axis, radius: float, spots: np.ndarray, seed: int = 0) -> np.ndarray:
+    def _sheet_args(self, sheets, fans: dict | None) -> tuple:
+        """:func:`_stripe_light`'s sheet arguments (after ``x, normal``) for ``sheets`` and their
+        ``fans`` (by sheet index, deg), padded to a multiple of 4 sheets (one compilation for a
+        few counts)."""
+        n = sheets.n
+        k = n + (-n) % 4
+        apex, axis, th = np.zeros((k, 3)), np.tile([0.0, 0.0, 1.0], (k, 1)), np.full(k, np.pi / 2)
+        apex[:n], axis[:n], th[:n] = np.asarray(sheets.apex), np.asarray(sheets.axis), np.asarray(sheets.half_angle)
+        fan = np.tile([0.0, 4 * np.pi], (k, 1))
+        for j, (lo, hi) in (fans or {}).items():
+            fan[j] = np.radians(lo), np.radians((hi - lo) % 360.0)
+        sopts = jnp.asarray([self.opts.stripe_sigma_mm, self.opts.stripe_power], dtype=float)
+        return (jnp.asarray(apex), jnp.asarray(axis), jnp.asarray(th), jnp.asarray(fan), jnp.arange(k) < n, sopts)
+
+    def pipe(
+        self, centre, axis, radius: float, spots: np.ndarray, seed: int = 0, sheets=None, fans: dict | None = None
+    ) -> np.ndarray:
         """One catadioptric image from inside a straight pipe (BGR uint8): the pipe's axis through
         ``centre`` along the unit ``axis`` (camera frame, mm), its inner ``radius`` (mm), and the
-        laser spots' 3D points on its wall (S, 3)."""
+        laser spots' 3D points on its wall (S, 3).  ``sheets`` and ``fans``: line and ring lasers'
+        light drawn as stripes on the wall, as in :meth:`catadioptric`."""
         if self._rays is None:
             raise ValueError("this renderer has no mirror; it renders direct views only")
         spots = np.asarray(spots, float).reshape(-1, 3)
@@ -439,6 +512,8 @@ class Renderer:
         opts = jnp.asarray([o.dot_radius_mm, o.spot_sigma_mm, o.spot_power], dtype=float)
         scene = (jnp.asarray(centre, float), jnp.asarray(axis, float), jnp.asarray(float(radius)),
                  jnp.asarray(spot_xyz), jnp.arange(len(spot_xyz)) < len(spots), opts)  # fmt: skip
+        if sheets is not None and sheets.n:
+            scene = (*scene, self._sheet_args(sheets, fans))
         out = self._unpack(_pipe_band(self._seen_rays, *scene))
         shade = lambda rays: _pipe_shade_rays(rays, *scene)  # noqa: E731
         return _finish(self._cells(out, self._traced(shade), shade), o, seed)
@@ -495,7 +570,7 @@ def scene_setup(scene, image_names: list[str], chess_names: list[str]):
                 r = np.linalg.norm(grid_uv - centre, axis=-1)
                 layout.y_dir = 1 if np.nanmedian(r[1] - r[0]) > 0 else -1
         boards[name] = layout
-    return Setup(
+    setup = Setup(
         image_size=(rig.camera.width, rig.camera.height),
         mirror_radius=float(rig.mirror.radius),
         mirror_height=float(rig.mirror.height),
@@ -505,6 +580,49 @@ def scene_setup(scene, image_names: list[str], chess_names: list[str]):
         chessboard_views=[(c, scene.chess_board) for c in chess_names],
         extra={"simulation": dict(scene.info)},
     )
+    if rig.has_sheets:
+        setup.n_lasers = rig.n_elements
+        setup.laser_kinds = list(rig.element_kinds)
+        setup.laser_azimuth_deg = _laser_azimuths(scene, centre)
+    return setup
+
+
+def _laser_azimuths(scene, centre: np.ndarray) -> list[float | None]:
+    """Each laser's image azimuth (deg) about ``centre`` as a user reads it off the first images
+    where it shows: a point laser's spot, a line laser's stripe's middle (the circular mean of its
+    exact pixels); None for a ring laser (and for a laser never seen)."""
+    from ..observations.simulate import visible_spots, visible_stripes
+    from .detect import azimuth_deg, circular_mean_deg
+
+    rig = scene.rig
+    out: list[float | None] = [None] * rig.n_elements
+    point_of = rig.point_elements
+    for v in range(len(scene.box_poses)):
+        for laser, _, _, uv in visible_spots(scene, v):
+            e = int(point_of[laser])
+            if out[e] is None:
+                out[e] = float(azimuth_deg(uv, centre)[0])
+        per_line: dict[int, list] = {}
+        for e, _, _, uv in visible_stripes(scene, v):
+            if rig.element_kinds[e] == "plane" and out[e] is None:
+                per_line.setdefault(e, []).append(uv)
+        for e, uvs in per_line.items():
+            out[e] = circular_mean_deg(azimuth_deg(np.concatenate(uvs), centre)) % 360.0
+        if all(a is not None for a, k in zip(out, rig.element_kinds, strict=True) if k != "cone"):
+            break
+    return out
+
+
+def scene_sheets(scene) -> tuple:
+    """``(sheets, fans)`` for :meth:`Renderer.catadioptric` and :meth:`Renderer.pipe` of a scene's
+    rig: its line and ring lasers, and their fans by sheet index (deg; the scene's ``fans`` are
+    by element index), or ``(None, None)`` for a rig of point lasers."""
+    rig = scene.rig
+    if not rig.has_sheets:
+        return None, None
+    local = rig.local_index
+    fans = {int(local[e]): tuple(f) for e, f in getattr(scene, "fans", {}).items()}
+    return rig.sheets, fans
 
 
 def _cone_only(mirror) -> None:
@@ -535,6 +653,7 @@ def render_scene(scene, out_dir, opts: RenderOptions = RenderOptions(), progress
     cols, rows = grid_shape(scene.boards[scene.chess_board])
     square = float(scene.boards[scene.chess_board][1, 0] - scene.boards[scene.chess_board][0, 0])
     names, chess_names = [], []
+    sheet_light = scene_sheets(scene)
     jobs = [("view", i) for i in range(len(scene.box_poses))] + [("chess", j) for j in range(len(scene.chess_poses))]
     if progress:
         from tqdm import tqdm
@@ -543,7 +662,8 @@ def render_scene(scene, out_dir, opts: RenderOptions = RenderOptions(), progress
     for kind, i in jobs:
         if kind == "view":
             spots = [(w, x) for _, w, x, _ in visible_spots(scene, i)]
-            img = renderer.catadioptric({b: scene.box_poses[i][b] for b in walls}, scene.boards, spots, opts.seed + i)
+            walls_i = {b: scene.box_poses[i][b] for b in walls}
+            img = renderer.catadioptric(walls_i, scene.boards, spots, opts.seed + i, *sheet_light)
             name = f"view{i:02d}.png"
             names.append(name)
         else:
@@ -558,6 +678,8 @@ def render_scene(scene, out_dir, opts: RenderOptions = RenderOptions(), progress
         if b.azimuth_deg is not None:
             b.dot_radius_mm = opts.dot_radius_mm
     setup.spot_sigma_mm = opts.spot_sigma_mm
+    if rig.has_sheets:
+        setup.stripe_sigma_mm = opts.stripe_sigma_mm
     setup.rigid_boards = [k for k, b in setup.boards.items() if b.azimuth_deg is not None]  # the box's walls
     write_json_atomic(out / "setup.json", setup_to_json(setup))
     return names + chess_names
@@ -568,8 +690,10 @@ def render_pipe(scene, out_dir, opts: RenderOptions = RenderOptions(), progress:
     pose (``pipe00.png``, ...), image ``k`` with noise seed ``opts.seed + k``; returns the names.
 
     The pipe's inner wall is the only surface; every beam lights its spot where it meets the
-    wall.  No setup is written: the spots are labelled by a calibration's laser lines when
-    measured (``slcvjax measure CAL IMAGE_DIR``).
+    wall, and every line or ring laser draws its stripe (a line laser's fan from the scene's
+    ``fans``, by element index, where it has them; all round otherwise).  No setup is written:
+    the spots are labelled by a calibration's laser lines when measured
+    (``slcvjax measure CAL IMAGE_DIR``).
     """
     _cone_only(scene.rig.mirror)
     from pathlib import Path
@@ -579,6 +703,7 @@ def render_pipe(scene, out_dir, opts: RenderOptions = RenderOptions(), progress:
     rig = scene.rig
     renderer = Renderer(rig.camera, rig.mirror, opts)
     hit = jax.jit(jax.vmap(beam_pipe_point, in_axes=(0, 0, None, None, None)))
+    sheet_light = scene_sheets(scene)
     poses = range(len(scene.centers))
     if progress:
         from tqdm import tqdm
@@ -588,7 +713,7 @@ def render_pipe(scene, out_dir, opts: RenderOptions = RenderOptions(), progress:
     for i in poses:
         x, ok = hit(rig.lasers.points, rig.lasers.directions, scene.centers[i], scene.axes[i], scene.diameter / 2)
         spots = np.asarray(x)[np.asarray(ok)]
-        img = renderer.pipe(scene.centers[i], scene.axes[i], scene.diameter / 2, spots, opts.seed + i)
+        img = renderer.pipe(scene.centers[i], scene.axes[i], scene.diameter / 2, spots, opts.seed + i, *sheet_light)
         name = f"pipe{i:02d}.png"
         if not cv2.imwrite(str(out / name), img):
             raise OSError(f"{out / name}: could not write the image")

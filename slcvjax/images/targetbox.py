@@ -250,6 +250,8 @@ def write_build_sheet(setup: Setup, out_dir, pages: dict, source: str = "setup.j
     ax.annotate("mirror", (0, 0), ha="center", va="center", fontsize=8, color="tab:blue")
     if setup.laser_azimuth_deg is not None:
         for i, a in enumerate(setup.laser_azimuth_deg):
+            if a is None:  # a ring laser: no azimuth
+                continue
             d = np.array([math.cos(math.radians(a)), math.sin(math.radians(a))])
             ax.plot(*np.stack([1.2 * r * d, 2.5 * r * d]).T, color="tab:red", lw=1)
             ax.annotate(f"L{i}", 2.8 * r * d, fontsize=7, color="tab:red", ha="center", va="center")
