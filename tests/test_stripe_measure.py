@@ -193,3 +193,12 @@ def test_measure_command_writes_stripe_points_rings_and_spots(ring_rig, tmp_path
     ring = v0["rings"][0]
     assert ring["laser"] == 0 and abs(ring["circle"]["diameter"] - 150.0) < 5 * ring["circle"]["diameter_std"]
     assert ring["ellipse"]["ovality"] < 0.01
+
+
+def test_pipe_command_runs_the_ring_experiment(tmp_path):
+    out = tmp_path / "ring"
+    argv = ["pipe", "--laser", "ring", "--poses", "2", "--noise", "0.2", "--out", str(out)]
+    assert cli.main(argv) == 0
+    doc = json.loads((out / "points.json").read_text())  # conftest checks it against its schema
+    for v in doc["views"]:
+        assert abs(v["rings"][0]["circle"]["diameter"] - 150.0) < 5 * v["rings"][0]["circle"]["diameter_std"]

@@ -31,6 +31,8 @@ from ..observations.formats import Observations, SpotObs, StripeObs, ViewObs
 from ..support.safe import orthonormal_basis, safe_div, safe_sqrt
 from .pipe import PipeScene, measure_observations
 
+RING_KINDS = ("cone", "point", "point", "point", "point")  # the ring experiment's rig: a ring laser, 4 point lasers
+
 
 def wall_point(p, d, center, axis, major_dir, semi_major, semi_minor):
     """Where the ray ``p + lam d`` (lam > 0, camera frame, mm) meets an elliptic cylinder: axis
