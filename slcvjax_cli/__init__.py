@@ -332,6 +332,13 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--offset", type=float, default=10.0, help="largest offset of the pipe's axis in mm (default 10)")
     q.add_argument("--tilt", type=float, default=0.0, help="pipe axis tilt from the camera z axis in deg (default 0)")
     q.add_argument("--lasers", type=int, default=10, help="lasers of the simulated rig (default 10)")
+    q.add_argument(
+        "--laser",
+        choices=["point", "ring"],
+        default="point",
+        help="point: the paper's point lasers; ring: a ring laser and 4 point lasers "
+        "(sheet_rig(paper_rig(), cone, point x4)), its stripe measured and a circle and ellipse fitted per view",
+    )
     q.add_argument("--seed", type=int, default=0)
     q.add_argument("--out", default="slcvjax-pipe", help="output directory (default ./slcvjax-pipe)")
     q.set_defaults(func=_command("pipe"))

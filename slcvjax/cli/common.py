@@ -174,6 +174,22 @@ def print_points(names, views, circles) -> None:
         log.info(line)
 
 
+def print_stripes(names, stripe_views, rings) -> None:
+    """One line per view: its stripe points, grazing ones, and each ring laser's circle and ellipse."""
+    for k, (name, svp) in enumerate(zip(names, stripe_views, strict=True)):
+        line = f"{name:>10s}  {len(svp.lasers):4d} stripe points"
+        if int(np.sum(svp.grazing)):
+            line += f" ({int(np.sum(svp.grazing))} grazing, left out of fits)"
+        if svp.missing:
+            line += f", {len(svp.missing)} sample(s) without a point"
+        for e, (c, el) in sorted((rings[k] if rings else {}).items()):
+            line += f"  ring {e}: diameter {c.diameter:.3f} +- {fmt(c.diameter_std)} mm"
+            if el is not None:
+                ov_std = el.std["ovality"] if el.std else None
+                line += f", ovality {100 * el.ovality:.3f} +- {fmt(None if ov_std is None else 100 * ov_std)} %"
+        log.info(line)
+
+
 def pipe_report(res, paper: bool = True) -> None:
     s = res["summary"]
     log.info(

@@ -802,7 +802,7 @@ def _point_rows(doc: dict):
                 *(math.nan if v is None else float(v) for v in std),
                 float(p.get("angle_deg", math.nan)),
                 float(p.get("gap_mm", math.nan)),
-                int(bool(p.get("nearly_parallel", False))),
+                int(bool(p.get("nearly_parallel", p.get("grazing", False)))),
                 int(bool(p.get("off_line", False))),
             )
 

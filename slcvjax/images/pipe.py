@@ -229,19 +229,31 @@ def measure_observations(
     undetermined: tuple[int, ...] = (),
 ) -> list[ViewPoints]:
     """Triangulate every spot of every view of an observations file (see :func:`measure_spots`;
-    ``undetermined``: the calibration's undetermined lasers, whose spots give no point)."""
-    if obs.n_lasers != rig.lasers.n:
-        raise ValueError(f"the observations have {obs.n_lasers} lasers, the calibration {rig.lasers.n}")
+    ``undetermined``: the calibration's undetermined lasers, whose spots give no point).
+
+    A spot's laser is its element index in the files (``lasers[i]``); in a rig that mixes kinds
+    it is measured with its point laser (:attr:`Rig.local_index`) and reported by its element
+    index again (``lasers``, ``fits_laser`` and ``missing``)."""
+    if obs.n_lasers != rig.n_elements:
+        raise ValueError(f"the observations have {obs.n_lasers} lasers, the calibration {rig.n_elements}")
+    local, elements = rig.local_index, rig.point_elements
     lasers, pixels, view_of = [], [], []
     for v, view in enumerate(obs.views):
         for s in view.spots:
-            lasers.append(s.laser)
+            lasers.append(int(local[s.laser]))
             pixels.append(s.pixel)
             view_of.append(v)
-    return measure_spots(
+    held = tuple(int(local[e]) for e in undetermined if rig.element_kinds[e] == "point")
+    views = measure_spots(
         rig, np.asarray(lasers, int), np.reshape(pixels, (-1, 2)), np.asarray(view_of, int), len(obs.views),
-        pixel_sigma, rig_cov, undetermined,
+        pixel_sigma, rig_cov, held,
     )  # fmt: skip
+    if rig.kinds:  # back to element indices
+        for vp in views:
+            vp.lasers = elements[vp.lasers]
+            vp.fits_laser = np.where(vp.fits_laser >= 0, elements[np.maximum(vp.fits_laser, 0)], -1)
+            vp.missing = [(k, int(elements[las]), why) for k, las, why in vp.missing]
+    return views
 
 
 def view_circle(vp: ViewPoints, axis=(0.0, 0.0, 1.0), name: str = "") -> Circle:
@@ -351,26 +363,26 @@ def pipe_experiment(
 # ----------------------------------------------------------------------------- calibration input and output
 
 
-def measurement_inputs(path, cal) -> tuple[float | None, np.ndarray | None]:
+def measurement_inputs(path, cal, kind: str = "spot") -> tuple[float | None, np.ndarray | None]:
     """From a read calibration: the default pixel sigma and the rig covariance (or None).
 
     The pixel sigma is the calibration's noise sigma of its spots
     (``residuals.by_kind_sigma_px.spot``: what the spots' residuals say over the rows the fit
-    leaves free), else its pooled one (``residuals.sigma_px``; ``rms_px / sqrt(2)`` when only
-    the 2D RMS is there).
+    leaves free; ``kind="stripe"``: of its stripe samples, ``by_kind_sigma_px.stripe``), else its
+    pooled one (``residuals.sigma_px``; ``rms_px / sqrt(2)`` when only the 2D RMS is there).
     The covariance is ``uncertainty.covariance.matrix`` when present; a malformed
     one raises :class:`FormatError` naming the file and the field.
     """
     from ..observations.formats import FormatError, ReadContext
 
-    if cal.rig.mirror is None or cal.rig.lasers.n == 0:
+    if cal.rig.mirror is None or cal.rig.n_elements == 0:
         raise FormatError(f"{path}: mirror, lasers: a camera-only calibration cannot measure laser spots")
     ctx = ReadContext(str(path))
     res = ctx.get(cal.extra, "residuals", "", dict, optional=True) or {}
     by_kind = ctx.get(res, "by_kind_sigma_px", "residuals", dict, optional=True) or {}
     sigma = None
     for where, val in (
-        ("residuals.by_kind_sigma_px.spot", by_kind.get("spot")),
+        (f"residuals.by_kind_sigma_px.{kind}", by_kind.get(kind)),
         ("residuals.sigma_px", res.get("sigma_px")),
         ("residuals.rms_px", res.get("rms_px")),
     ):
@@ -390,7 +402,8 @@ def measurement_inputs(path, cal) -> tuple[float | None, np.ndarray | None]:
         if n not in (g, g - 1):
             raise FormatError(
                 f"{path}: uncertainty.covariance.matrix: {n} rows, expected {g} "
-                f"(camera 9 + mirror 6 + 4 per laser, or {g - 1} without the mirror's shape column)"
+                f"(camera 9 + mirror 6 + each laser's columns: 4 per point laser, 3 per plane, 6 per cone; "
+                f"or {g - 1} without the mirror's shape column)"
             )
         cov = ctx.matrix(mat, n, n, "uncertainty.covariance.matrix")
         scale = float(np.max(np.abs(cov), initial=0.0))
@@ -407,48 +420,96 @@ def measurement_inputs(path, cal) -> tuple[float | None, np.ndarray | None]:
     return sigma, cov
 
 
+def stripe_points_json(svp) -> list[dict]:
+    """The ``points`` entries of a view's stripe samples
+    (:class:`slcvjax.measurement.stripes.StripeViewPoints`): ``stripe`` and ``sample`` in place
+    of a spot's ``spot``, the ray's angle to the sheet and the ``grazing`` flag."""
+    std = svp.std
+    return [
+        {
+            "laser": int(svp.lasers[i]),
+            "stripe": int(svp.stripe_index[i]),
+            "sample": int(svp.sample_index[i]),
+            "xyz": svp.xyz[i].tolist(),
+            "std": [None if not np.isfinite(v) else float(v) for v in std[i]],
+            "angle_deg": float(np.degrees(svp.angle[i])),
+            "angle_std_deg": float(np.degrees(svp.angle_std[i])),
+            "grazing": bool(svp.grazing[i]),
+        }
+        for i in range(len(svp.lasers))
+    ]
+
+
+def ring_json(laser: int, circle: Circle, ellipse) -> dict:
+    """A ring laser's circle and ellipse in one view (``views[k].rings[j]`` of ``slcv-points/1``)."""
+    out = {
+        "laser": int(laser),
+        "points_used": int(circle.residuals.size),
+        "circle": {
+            "center": circle.center.tolist(),
+            "center_std": None if circle.center_std is None else circle.center_std.tolist(),
+            "diameter": circle.diameter,
+            "diameter_std": circle.diameter_std,
+            "rms": circle.rms,
+        },
+    }
+    if ellipse is not None:
+        sd = ellipse.std
+        out["ellipse"] = {
+            "center": ellipse.center.tolist(),
+            "major_diameter": ellipse.major,
+            "minor_diameter": ellipse.minor,
+            "orientation_deg": float(np.degrees(ellipse.orientation)),
+            "ovality": ellipse.ovality,
+            "mean_diameter": ellipse.mean_diameter,
+            "rms": ellipse.rms,
+            "std": None
+            if sd is None
+            else {
+                "center": np.asarray(sd["center"]).tolist(),
+                "major_diameter": sd["major"],
+                "minor_diameter": sd["minor"],
+                "orientation_deg": float(np.degrees(sd["orientation"])),
+                "ovality": sd["ovality"],
+                "mean_diameter": sd["mean_diameter"],
+            },
+        }
+    return out
+
+
 def points_document(
     names: list[str],
-    views: list[ViewPoints],
+    views: list[ViewPoints] | None,
     circles: list[Circle | None] | None = None,
     axis=None,
     meta: dict | None = None,
+    stripe_views: list | None = None,
+    rings: list[dict] | None = None,
 ) -> dict:
-    """The ``slcv-points/1`` document of measured views (with their circles when fitted)."""
+    """The ``slcv-points/1`` document of measured views (with their circles when fitted).
+
+    ``views``: the spots' points per view (None: no spots); ``stripe_views``: the stripe samples'
+    points per view (:class:`slcvjax.measurement.stripes.StripeViewPoints`), after the spots' in
+    each view's ``points``; ``rings``: per view ``{laser: (Circle, Ellipse or None)}`` of its ring
+    lasers (``views[k].rings``)."""
     out_views = []
-    for k, (name, vp) in enumerate(zip(names, views, strict=True)):
-        std = vp.std
-        pts = [
-            {
-                "laser": int(vp.lasers[i]),
-                "spot": int(vp.spot_index[i]),
-                "xyz": vp.xyz[i].tolist(),
-                "std": std[i].tolist(),
-                "angle_deg": float(np.degrees(vp.angle[i])),
-                "gap_mm": float(vp.gap[i]),
-                "nearly_parallel": bool(vp.parallel[i]),
-                "off_line": bool(vp.off_line[i]),
-            }
-            | ({"fits_laser": int(vp.fits_laser[i])} if vp.off_line[i] and vp.fits_laser[i] >= 0 else {})
-            for i in range(len(vp.lasers))
-        ]
-        view = {
-            "name": name,
-            "points": pts,
-            "missing": [{"spot": s, "laser": las, "reason": why} for s, las, why in vp.missing],
-        }
-        c = None if circles is None else circles[k]
-        if c is not None:
-            view["circle"] = {
-                "center": c.center.tolist(),
-                "center_std": None if c.center_std is None else c.center_std.tolist(),
-                "diameter": c.diameter,
-                "diameter_std": c.diameter_std,
-                "rms": c.rms,
-                "residuals": c.residuals.tolist(),
-                "points_used": int(c.residuals.size),
-                "nearly_parallel_used": c.nearly_parallel_used,
-            }
+    for k, name in enumerate(names):
+        vp = views[k] if views is not None else None
+        if vp is None:
+            view = {"name": name, "points": [], "missing": []}
+        else:
+            view = _spot_view_json(name, vp)
+            c = None if circles is None else circles[k]
+            if c is not None:
+                view["circle"] = _circle_json(c)
+        if stripe_views is not None:
+            svp = stripe_views[k]
+            view["points"] += stripe_points_json(svp)
+            view["missing"] += [
+                {"stripe": st, "sample": sa, "laser": las, "reason": why} for st, sa, las, why in svp.missing
+            ]
+        if rings is not None and rings[k]:
+            view["rings"] = [ring_json(e, c, el) for e, (c, el) in sorted(rings[k].items())]
         out_views.append(view)
     doc: dict = {"format": "slcv-points/1", "units": "mm"}
     if axis is not None:
@@ -456,3 +517,40 @@ def points_document(
     doc.update(meta or {})
     doc["views"] = out_views
     return doc
+
+
+def _circle_json(c: Circle) -> dict:
+    return {
+        "center": c.center.tolist(),
+        "center_std": None if c.center_std is None else c.center_std.tolist(),
+        "diameter": c.diameter,
+        "diameter_std": c.diameter_std,
+        "rms": c.rms,
+        "residuals": c.residuals.tolist(),
+        "points_used": int(c.residuals.size),
+        "nearly_parallel_used": c.nearly_parallel_used,
+    }
+
+
+def _spot_view_json(name: str, vp: ViewPoints) -> dict:
+    """A view's spots as ``slcv-points/1``: its points and the spots that gave none."""
+    std = vp.std
+    pts = [
+        {
+            "laser": int(vp.lasers[i]),
+            "spot": int(vp.spot_index[i]),
+            "xyz": vp.xyz[i].tolist(),
+            "std": std[i].tolist(),
+            "angle_deg": float(np.degrees(vp.angle[i])),
+            "gap_mm": float(vp.gap[i]),
+            "nearly_parallel": bool(vp.parallel[i]),
+            "off_line": bool(vp.off_line[i]),
+        }
+        | ({"fits_laser": int(vp.fits_laser[i])} if vp.off_line[i] and vp.fits_laser[i] >= 0 else {})
+        for i in range(len(vp.lasers))
+    ]
+    return {
+        "name": name,
+        "points": pts,
+        "missing": [{"spot": s, "laser": las, "reason": why} for s, las, why in vp.missing],
+    }

@@ -298,8 +298,9 @@ def _laser_stds(rig: Rig, rig_cov: np.ndarray | None) -> tuple[np.ndarray, np.nd
     (e1, e2) blocks); zeros without one."""
     off_std, dir_std = np.zeros(rig.lasers.n), np.zeros(rig.lasers.n)
     if rig_cov is not None:
+        elements = rig.point_elements  # a point laser's columns are its element's
         for k in range(rig.lasers.n):
-            c = np.diag(rig_cov)[rig.layout.elements[k]]
+            c = np.diag(rig_cov)[rig.layout.elements[elements[k]]]
             off_std[k], dir_std[k] = std_of_variance(c[0] + c[1]), std_of_variance(c[2] + c[3])
     return off_std, dir_std
 
@@ -487,30 +488,20 @@ def circle_sensitivity(theta, q, w):
     return -jnp.linalg.solve(h, b.reshape(3, -1)).reshape(b.shape)
 
 
-def fit_circle(q: np.ndarray, cov_q: np.ndarray | None = None, weighted: bool = True, iters: int = 50) -> Circle:
-    """Fit a circle to 2D points ``q`` (n, 2): algebraic (Kasa) start, geometric refinement.
-
-    ``cov_q`` (2n, 2n), when given, is the points' joint covariance: the diameter's
-    and centre's standard deviations are propagated from it, and with ``weighted``
-    each point's radial residual is weighted by the inverse of its radial variance
-    (from its own 2x2 block, along the direction from the algebraic centre).
-    Raises ``ValueError`` for fewer than 3 points or collinear points.
-
-    Gauss-Newton in NumPy rather than a compiled solver: 16 poses' fits took 4.5 ms in all,
-    optimistix's jitted LM 0.95 ms after a 0.72 s compilation that each new process pays
-    (``benchmarks/bench_solvers.py``, ``benchmarks/results/solvers.json``).
-    """
-    q = np.asarray(q, dtype=float).reshape(-1, 2)
+def fit_circle_theta(q: np.ndarray, blocks: np.ndarray | None, iters: int) -> tuple[np.ndarray, np.ndarray]:
+    """The circle ``(cx, cy, R)`` through 2D points ``q`` (n, 2) and the weights it used (n,):
+    an algebraic (Kasa) start weighted by each point's overall variance, then Gauss-Newton on the
+    radial residuals weighted by the inverse of each point's radial variance (``blocks`` (n, 2, 2):
+    each point's own covariance; None: unweighted).  Raises ``ValueError`` for fewer than 3
+    points, collinear points, or a fit that does not converge."""
     n = q.shape[0]
     if n < 3:
         raise ValueError(f"a circle needs at least 3 points, got {n}")
     a = np.column_stack([2.0 * q, np.ones(n)])
     if np.linalg.matrix_rank(a) < 3:
         raise ValueError("the points are collinear: no circle")
-    blocks = None
     w0 = np.ones(n)
-    if cov_q is not None and weighted:
-        blocks = np.stack([np.asarray(cov_q)[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] for i in range(n)])
+    if blocks is not None:
         tr = np.trace(blocks, axis1=1, axis2=2)
         if np.all(tr > 0) and np.all(np.isfinite(tr)):
             w0 = np.min(tr) / tr  # the start weighs points by their overall variance
@@ -535,15 +526,45 @@ def fit_circle(q: np.ndarray, cov_q: np.ndarray | None = None, weighted: bool = 
         theta = theta + step
         if np.max(np.abs(step)) < 1e-13 * max(1.0, abs(theta[2])):
             break
-    res = np.linalg.norm(q - theta[:2], axis=1) - theta[2]
-    if not np.all(np.isfinite(theta)) or not np.all(np.isfinite(res)):
+    if not np.all(np.isfinite(theta)) or not np.all(np.isfinite(np.linalg.norm(q - theta[:2], axis=1))):
         raise ValueError("the circle fit did not converge (non-finite centre or radius)")
+    return theta, w
+
+
+def circle_sensitivities(theta: np.ndarray, q: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """(3, n, 2): the derivative of the fitted ``(cx, cy, R)`` with respect to each point of
+    ``q`` (n, 2) fitted with weights ``w`` (n,) (:func:`circle_sensitivity`, padded to a bucket
+    with points of weight 0: one compilation per bucket)."""
+    n = q.shape[0]
+    size = bucket(n)
+    qp, wp = pad_rows(q, size), pad_rows(w, size, 0.0)
+    sens = np.asarray(circle_sensitivity(jax.device_put(theta), jax.device_put(qp), jax.device_put(wp)))
+    return sens[:, :n]
+
+
+def fit_circle(q: np.ndarray, cov_q: np.ndarray | None = None, weighted: bool = True, iters: int = 50) -> Circle:
+    """Fit a circle to 2D points ``q`` (n, 2): algebraic (Kasa) start, geometric refinement.
+
+    ``cov_q`` (2n, 2n), when given, is the points' joint covariance: the diameter's
+    and centre's standard deviations are propagated from it, and with ``weighted``
+    each point's radial residual is weighted by the inverse of its radial variance
+    (from its own 2x2 block, along the direction from the algebraic centre).
+    Raises ``ValueError`` for fewer than 3 points or collinear points.
+
+    Gauss-Newton in NumPy rather than a compiled solver: 16 poses' fits took 4.5 ms in all,
+    optimistix's jitted LM 0.95 ms after a 0.72 s compilation that each new process pays
+    (``benchmarks/bench_solvers.py``, ``benchmarks/results/solvers.json``).
+    """
+    q = np.asarray(q, dtype=float).reshape(-1, 2)
+    n = q.shape[0]
+    blocks = None
+    if cov_q is not None and weighted and n >= 3:
+        blocks = np.stack([np.asarray(cov_q)[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] for i in range(n)])
+    theta, w = fit_circle_theta(q, blocks, iters)
+    res = np.linalg.norm(q - theta[:2], axis=1) - theta[2]
     d_std = c_std = None
     if cov_q is not None:
-        size = bucket(n)  # padded points of weight 0 change nothing: one compilation per bucket
-        qp, wp = pad_rows(q, size), pad_rows(w, size, 0.0)
-        sens = np.asarray(circle_sensitivity(jax.device_put(theta), jax.device_put(qp), jax.device_put(wp)))
-        sens = sens[:, :n].reshape(3, 2 * n)
+        sens = circle_sensitivities(theta, q, w).reshape(3, 2 * n)
         ct = sens @ np.asarray(cov_q) @ sens.T
         if not np.all(np.isfinite(ct)):
             raise ValueError("the circle's covariance is not finite (a point's uncertainty is unbounded)")
