@@ -81,6 +81,11 @@ def _second_order(grad_fn):
 
 def _observation_blocks(params: Params, pk: Packed, loss: str, scale, kind_weight) -> _Blocks:
     """Every observation's cost derivatives at ``params`` (local coordinates zero)."""
+    if pk.has_stripes:
+        raise NotImplementedError(
+            "the implicit derivative does not hold line and ring lasers' stripe samples yet: a calibration "
+            "with stripes has no differentiable solution or pixel sensitivity"
+        )
     rig = params.rig
     cam, mir, las = rig.camera, rig.mirror, rig.lasers
     g, nb = rig.tangent_dim, params.n_blocks
@@ -457,7 +462,7 @@ def sensitivity(result, x_ref: np.ndarray | None = None) -> Sensitivity:
     xg, _ = _pixel_columns(lin, result.masks)
     xg = np.asarray(xg)
     counts = [pk.dot_pose.shape[0], pk.spot_pose.shape[0], pk.rim_pixels.shape[0], pk.chess_pose.shape[0]]
-    kind = np.repeat(np.repeat(np.arange(len(Kind)), counts), 2)
+    kind = np.repeat(np.repeat(np.arange(len(counts)), counts), 2)
     index = np.repeat(np.concatenate([np.arange(c) for c in counts]), 2)
     axis = np.tile(np.arange(2), sum(counts))
     rig = params.rig

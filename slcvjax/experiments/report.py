@@ -51,7 +51,13 @@ from ..support.persist import PersistentJit
 
 log = logging.getLogger(__name__)
 
-KIND_TITLES = {"dot": "board dots", "spot": "laser spots", "rim": "rim pixels", "chess": "chessboard corners"}
+KIND_TITLES = {
+    "dot": "board dots",
+    "spot": "laser spots",
+    "rim": "rim pixels",
+    "chess": "chessboard corners",
+    "stripe": "stripe samples",
+}
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
 
@@ -85,7 +91,7 @@ def residual_vectors(result: CalibrationResult) -> dict:
     pk = result.packed
     layout = Layout.of(pk, n_lasers=result.rig.lasers.n, sheet_dim=result.rig.sheet_dim)
     r, obs, kind_r, use = (np.asarray(a) for a in _rows_jit(pad_params(layout, result.params), layout.pad_packed(pk)))
-    n_pad = int(sum(layout.cap[:4]))
+    n_pad = int(sum(layout.cap[:4])) + (layout.stripes[1] if layout.stripes is not None else 0)
     vector = np.full((n_pad, 2), np.nan)
     valid = np.zeros(n_pad, bool)
     order = np.argsort(obs[use], kind="stable")
@@ -99,11 +105,17 @@ def residual_vectors(result: CalibrationResult) -> dict:
     valid = layout.unpad_observations(valid)
     counts = [int(c) for c in np.asarray(pk.counts)]
     n = sum(counts)
-    kind = np.repeat(np.arange(len(Kind)), counts)
+    kind = np.repeat(np.arange(len(counts)), counts)
     n_d, n_s, n_r = counts[: Kind.CHESS]
-    pixel = np.concatenate(
-        [np.asarray(pk.dot_pixels), np.asarray(pk.spot_pixels), np.full((n_r, 2), np.nan), np.asarray(pk.chess_pixels)]
-    )
+    parts = [
+        np.asarray(pk.dot_pixels),
+        np.asarray(pk.spot_pixels),
+        np.full((n_r, 2), np.nan),
+        np.asarray(pk.chess_pixels),
+    ]
+    if pk.has_stripes:
+        parts.append(np.asarray(pk.stripe_pixels))
+    pixel = np.concatenate(parts)
     view = np.full(n, -1)
     board = np.full(n, "", dtype=object)
     for i, k in enumerate(np.asarray(pk.dot_pose)):
@@ -112,8 +124,13 @@ def residual_vectors(result: CalibrationResult) -> dict:
         view[n_d + j], board[n_d + j] = pk.pose_keys[k]
     for j, k in enumerate(np.asarray(pk.chess_pose)):
         view[n_d + n_s + n_r + j] = pk.chess_keys[k]
-    comp = np.concatenate([vector[valid & (kind != Kind.RIM)].ravel(), vector[valid & (kind == Kind.RIM), 0]])
-    comp_kind = np.concatenate([np.repeat(kind[valid & (kind != Kind.RIM)], 2), kind[valid & (kind == Kind.RIM)]])
+    if pk.has_stripes:
+        first = sum(counts[:4])
+        for j, k in enumerate(np.asarray(pk.stripe_pose)):
+            view[first + j], board[first + j] = pk.pose_keys[k]
+    one = (kind == Kind.RIM) | (kind == Kind.STRIPE)  # a distance from a curve: one component
+    comp = np.concatenate([vector[valid & ~one].ravel(), vector[valid & one, 0]])
+    comp_kind = np.concatenate([np.repeat(kind[valid & ~one], 2), kind[valid & one]])
     return {
         "kind": kind,
         "valid": valid,
@@ -216,7 +233,7 @@ def _sigmas(residuals: dict) -> tuple[list[float], list[str]]:
     comes from: a kind the calibration gave no sigma takes the pooled ``sigma_px``."""
     pooled = float(residuals["sigma_px"])
     out, said = [], []
-    for k in KIND_NAMES:
+    for k in (k for k in KIND_NAMES if k in residuals["by_kind_sigma_px"]):
         s = residuals["by_kind_sigma_px"].get(k)
         out.append(pooled if s is None else float(s))
         said.append("pooled sigma (the kind has too few free rows for its own)" if s is None else "its own")
@@ -612,7 +629,11 @@ def report_html(
     # histograms -----------------------------------------------------------------------------
     sigmas, said = _sigmas(res)
     img = _histograms(rv["rows_r"], rv["rows_kind"], sigmas, said)
-    kind_rows = [[KIND_TITLES[k], res["by_kind_rms_px"].get(k), res["by_kind_sigma_px"].get(k)] for k in KIND_NAMES]
+    kind_rows = [
+        [KIND_TITLES[k], res["by_kind_rms_px"].get(k), res["by_kind_sigma_px"].get(k)]
+        for k in KIND_NAMES
+        if k in res["by_kind_sigma_px"]
+    ]
     body = (
         f"<figure>{img}<figcaption>Top: each kind's residual components (u and v of a point, a rim pixel's "
         "distance to the rim's image), with the Gaussian of the kind's estimated sigma. Bottom: the components "
@@ -687,7 +708,7 @@ def report_html(
                 lu.get("status", ""),
             ]
         )
-    sig_text = ", ".join(f"{k} {_fmt(s)} px ({w})" for k, s, w in zip(KIND_NAMES, sigmas, said, strict=True))
+    sig_text = ", ".join(f"{k} {_fmt(s)} px ({w})" for k, s, w in zip(KIND_NAMES, sigmas, said, strict=False))
     body = (
         f"<p class='note'>Standard deviations from the calibration's covariance (the file's "
         f"<code>uncertainty</code>). <b>Bound</b>: the Cramér–Rao bound evaluated <b>at the estimate, not at the "
