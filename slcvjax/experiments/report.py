@@ -274,7 +274,7 @@ def _rig_figure(result: CalibrationResult, cal, obs) -> tuple[str, str]:
             omit=result.undetermined_lasers,
         )
         img = _img(path.read_bytes(), "the rig in 3D")
-    held = result.undetermined_lasers
+    held = result.undetermined_elements
     cap = "Camera frame (x red, y green, z blue), the mirror and each laser's line drawn to the target it meets."
     if held:
         cap += f" Not drawn: laser {', '.join(map(str, held))} (undetermined)."
@@ -549,7 +549,7 @@ def report_html(
 
     # status ---------------------------------------------------------------------------------
     converged = bool(unc.get("converged"))
-    held = list(result.undetermined_lasers)
+    held = list(result.undetermined_elements)
     lines = [
         "Converged: the last pass reached a minimum."
         if converged
@@ -694,17 +694,28 @@ def report_html(
         )
     shape = ", ".join(f"{k} {_fmt(v)}" for k, v in mir.items() if k not in ("apex", "axis") and not isinstance(v, list))
     las_rows = []
+    kinds = [ld.get("kind") or "point" for ld in doc["lasers"]]
     for i, (ld, lu) in enumerate(zip(doc["lasers"], unc["lasers"], strict=True)):
+        kind = kinds[i]
+        j = sum(k == kind if kind == "point" else k != "point" for k in kinds[:i])  # its index in its collection
+        if kind == "point":
+            b_pos, b_dir = ("position_std_mm", "direction_std_rad")
+            where, along = ld.get("point"), ld.get("direction")
+        else:
+            b_pos, b_dir = ("sheet_position_std_mm", "sheet_normal_std_rad")
+            where = ld.get("point") if kind == "plane" else ld.get("apex")
+            along = ld.get("normal") if kind == "plane" else ld.get("axis")
+        bound_ok = crb is not None and i not in held and b_pos in crb
         las_rows.append(
             [
-                str(i),
-                ld.get("point"),
-                ld.get("direction"),
+                f"{i} ({kind})",
+                where,
+                along,
                 lu["working_range_mm"],
                 lu["position_std_mm"],
                 lu["direction_std_deg"],
-                None if crb is None or i in held else float(crb["position_std_mm"][i]),
-                None if crb is None or i in held else float(np.degrees(crb["direction_std_rad"][i])),
+                float(crb[b_pos][j]) if bound_ok else None,
+                float(np.degrees(crb[b_dir][j])) if bound_ok else None,
                 lu.get("status", ""),
             ]
         )
