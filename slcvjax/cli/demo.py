@@ -70,7 +70,8 @@ def run(args) -> int:
     # estimated it (the detector's: spots noisier than dots, the rim's fitted edge far less)
     if images:
         pooled = float(res.cov.sigma)
-        sigma = [v if v is not None and np.isfinite(v) else pooled for v in (res.kind_sigma.get(k) for k in KIND_NAMES)]
+        names = [k for k in KIND_NAMES if k in res.kind_sigma]  # the kinds the problem has
+        sigma = [v if v is not None and np.isfinite(v) else pooled for v in (res.kind_sigma[k] for k in names)]
     else:
         sigma = max(args.noise, 1e-3)
     # with the boards the calibration gave the spots detected without one (else they are left out)
@@ -80,7 +81,7 @@ def run(args) -> int:
     pos_s, ang_s = laser_errors(st.rig, truth.rig, bound["x_ref"])
     unc = cal.extra["uncertainty"]["lasers"]
     if images:
-        each = ", ".join(f"{k} {v:.3g}" for k, v in zip(KIND_NAMES, sigma, strict=True))
+        each = ", ".join(f"{k} {v:.3g}" for k, v in zip(names, sigma, strict=True))
         log.info(f"bound at each kind's noise as the calibration estimated it ({each} px)")
     else:
         log.info(f"bound at sigma {sigma:.3f} px")
