@@ -252,16 +252,6 @@ def _rig_json(rig: Rig, undetermined: tuple[int, ...] = ()) -> dict:
     return {k: doc[k] for k in ("camera", "mirror", "lasers")}
 
 
-def _staged_undetermined(st) -> tuple[int, ...]:
-    """The staged result's undetermined lasers by their index in the file."""
-    rig = st.rig
-    if not rig.kinds:
-        return tuple(st.undetermined)
-    held = [int(rig.point_elements[i]) for i in st.undetermined]
-    held += [int(rig.sheet_elements[i]) for i in st.undetermined_sheets]
-    return tuple(sorted(held))
-
-
 def to_calibration(result: CalibrationResult, obs: Observations | None = None) -> Calibration:
     """The ``slcv-calibration/1`` content of a result: the joint solution, its report, the staged
     result beside it, and the problem it solved (``problem``: :mod:`slcvjax.calibration.stored`;
@@ -278,7 +268,7 @@ def to_calibration(result: CalibrationResult, obs: Observations | None = None) -
     st = result.staged
     stages = {
         "staged": {
-            **_rig_json(st.rig, _staged_undetermined(st)),
+            **_rig_json(st.rig, st.rig.element_indices(st.undetermined, st.undetermined_sheets)),
             "reports": [
                 {"stage": r.name, "rms": _finite_or_none(r.rms), "unit": r.unit, "notes": r.notes} for r in st.reports
             ],

@@ -248,12 +248,7 @@ class CalibrationResult:
     @property
     def undetermined_elements(self) -> tuple[int, ...]:
         """Every undetermined laser by its index in the file (point lasers' and sheets' alike)."""
-        rig = self.rig
-        if not rig.kinds:
-            return tuple(self.undetermined_lasers)
-        held = [int(rig.point_elements[i]) for i in self.undetermined_lasers]
-        held += [int(rig.sheet_elements[i]) for i in self.undetermined_sheets]
-        return tuple(sorted(held))
+        return self.rig.element_indices(self.undetermined_lasers, self.undetermined_sheets)
 
     @property
     def rig(self) -> Rig:

@@ -163,6 +163,14 @@ class Rig(eqx.Module):
             counts[key] += 1
         return np.asarray(out, dtype=np.int64)
 
+    def element_indices(self, points=(), sheets=()) -> tuple[int, ...]:
+        """Point lasers (their indices among :attr:`lasers`) and sheets (among :attr:`sheets`) by
+        their elements' indices in the file's order, sorted."""
+        if not self.kinds:
+            return tuple(int(i) for i in points)
+        held = [int(self.point_elements[i]) for i in points] + [int(self.sheet_elements[i]) for i in sheets]
+        return tuple(sorted(held))
+
     def with_lasers(self, lasers: Lasers) -> "Rig":
         """This rig's camera, mirror and sheets with other point lasers (more of them are added
         as the last elements, fewer drop the last point lasers)."""
