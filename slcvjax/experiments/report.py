@@ -569,7 +569,7 @@ def report_html(
     summary = (
         f"RMS reprojection error {_fmt(res['rms_px'])} px over the valid observations; noise sigma "
         f"{_fmt(res['sigma_px'])} px ({res['dof']} degrees of freedom); {len(obs.views)} catadioptric and "
-        f"{len(result.packed.chess_keys)} direct views; {result.rig.lasers.n} lasers; loss {res['loss']['kind']} at "
+        f"{len(result.packed.chess_keys)} direct views; {result.rig.n_elements} lasers; loss {res['loss']['kind']} at "
         f"{_fmt(res['loss']['scale_px'])} px; {n_rep} repairs, {n_out} outliers, {res['invalid']} observations "
         "the model cannot predict."
     )
@@ -592,9 +592,10 @@ def report_html(
     figs = []
     cat = rv["kind"] != Kind.CHESS
     for v, vo in enumerate(obs.views):
-        sel = cat & (rv["view"] == v) & (rv["kind"] != Kind.RIM)
+        # a stripe sample's residual is a distance across its curve: counted in the RMS, not drawn
+        sel = cat & (rv["view"] == v) & (rv["kind"] != Kind.RIM) & (rv["kind"] != Kind.STRIPE)
         rms = res["per_view_rms_px"].get(vo.name)
-        title = f"{vo.name}: RMS {_fmt(rms)} px (dots and spots)"
+        title = f"{vo.name}: RMS {_fmt(rms)} px (dots and spots" + (", stripe samples)" if vo.stripes else ")")
         rim_px = vo.rim if len(vo.rim) else None
         img = _view_figure(
             vo.name, size, pictures.get(vo.name), rim_model, rv["pixel"][sel], rv["vector"][sel],
