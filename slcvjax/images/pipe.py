@@ -275,6 +275,14 @@ def view_circle(vp: ViewPoints, axis=(0.0, 0.0, 1.0), name: str = "") -> Circle:
     return circle
 
 
+def with_observed(simulated: Observations, observed: Observations) -> Observations:
+    """``observed`` (one view per pose of a pipe scene, in its order: e.g. detected in its rendered
+    images) carrying the scene's truth of ``simulated`` (for the plots and the points file)."""
+    if len(observed.views) != len(simulated.views):
+        raise ValueError(f"{len(observed.views)} observed views for a pipe scene of {len(simulated.views)} poses")
+    return dataclasses.replace(observed, extra={**observed.extra, "simulation": simulated.extra["simulation"]})
+
+
 def pipe_experiment(
     rig: Rig,
     scene: PipeScene,
@@ -302,10 +310,7 @@ def pipe_experiment(
     """
     obs, truth = simulate_pipe(scene, noise=noise, seed=seed)
     if observed is not None:
-        if len(observed.views) != len(obs.views):
-            raise ValueError(f"{len(observed.views)} observed views for a pipe scene of {len(obs.views)} poses")
-        # the scene's truth goes with the observed spots (for the plots and the points file)
-        obs = dataclasses.replace(observed, extra={**observed.extra, "simulation": obs.extra["simulation"]})
+        obs = with_observed(obs, observed)
     sigma = noise if pixel_sigma is None else pixel_sigma
     views = measure_observations(rig, obs, sigma, rig_cov, undetermined)
     poses = []

@@ -16,8 +16,6 @@ The measurement reads observations only (:func:`ring_pipe_experiment`'s ``observ
 detected in rendered images of the same scene take the place of the exact ones.
 """
 
-import dataclasses
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -29,7 +27,7 @@ from ..measurement.ring import fit_rings
 from ..measurement.stripes import measure_stripe_observations
 from ..observations.formats import Observations, SpotObs, StripeObs, ViewObs
 from ..support.safe import orthonormal_basis, safe_div, safe_sqrt
-from .pipe import PipeScene, measure_observations
+from .pipe import PipeScene, measure_observations, with_observed
 
 RING_KINDS = ("cone", "point", "point", "point", "point")  # the ring experiment's rig: a ring laser, 4 point lasers
 
@@ -243,9 +241,7 @@ def ring_pipe_experiment(
     obs, truth, _ = simulate_ring_pipe(scene, noise, seed, step_deg, minor, orientation_deg)
     exact = observed is None
     if observed is not None:
-        if len(observed.views) != len(obs.views):
-            raise ValueError(f"{len(observed.views)} observed views for a pipe scene of {len(obs.views)} poses")
-        obs = dataclasses.replace(observed, extra={**observed.extra, "simulation": obs.extra["simulation"]})
+        obs = with_observed(obs, observed)
     sigma = noise if pixel_sigma is None else pixel_sigma
     stripe_views = measure_stripe_observations(rig, obs, sigma, rig_cov, undetermined)
     spot_views = measure_observations(rig, obs, sigma, rig_cov, undetermined) if rig.lasers.n else None
