@@ -198,7 +198,7 @@ def plot_rig(rig, path, walls=(), truth=None, title: str | None = None, omit=())
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")
     ax.set_zlabel("z (mm)")
-    if rig.lasers.n <= 12:
+    if 0 < rig.lasers.n <= 12:  # a camera without lasers has nothing to name
         ax.legend(fontsize=7, loc="upper left")
     extra = " (dashed: truth)" if truth is not None else ""
     ax.set_title(

@@ -5,6 +5,7 @@ reflection: not the back-projection the fit sampled)."""
 
 import ast
 import re
+from pathlib import Path
 
 import cv2
 import jax
@@ -363,3 +364,58 @@ def test_calibrate_names_a_bad_camera_yaml(tmp_path, capsys):
     argv = ["calibrate", str(tmp_path / "obs.json"), "--camera", str(tmp_path / "cam.yaml")]
     assert main([*argv, "--out", str(tmp_path / "cal.json")]) == 2
     assert "cam.yaml: image_width: missing" in capsys.readouterr().err
+
+
+MEI_IMAGES = Path(__file__).resolve().parents[2] / "shared" / "data" / "mei_paracatadioptric"
+
+
+@pytest.mark.slow
+def test_a_real_omni_calibration_exports_to_every_format_and_reports(tmp_path, capsys):
+    """``slcvjax omni`` on Mei's paracatadioptric images (a real central camera), then every
+    export format and the HTML report.  The central approximations are fitted where the boards
+    were seen: their reported RMS is what random pixels of that annulus, checked through the
+    calibrated forward model, give, and it is sub-pixel (the camera is central; OpenCV omnidir
+    fits its corners to 0.356 px)."""
+    images = sorted(MEI_IMAGES.glob("img_para_*.png"))
+    if len(images) < 10:
+        pytest.skip(f"{MEI_IMAGES} absent")
+    cal_path = tmp_path / "mei.json"
+    args = ["omni", *map(str, images), "--board", "6x8", "--square", "42", "--out", str(cal_path), "--no-plot"]
+    assert main([*args, "--projection", "perspective"]) == 0
+    cal = sj.read_calibration(cal_path)
+    rig = cal.rig
+    apex = np.asarray(rig.mirror.apex)
+    centre = np.array(
+        [rig.camera.fx * apex[0] / apex[2] + rig.camera.cx, rig.camera.fy * apex[1] / apex[2] + rig.camera.cy]
+    )
+    seen = np.concatenate(
+        [np.asarray(px, float) for v in cal.extra["problem"]["observations"]["views"] for px in v["boards"].values()]
+    )
+    radii = np.linalg.norm(seen - centre, axis=1)
+    capsys.readouterr()
+    for fmt in ex.FORMATS:
+        out = tmp_path / f"{fmt}.txt"
+        assert main(["export", str(cal_path), "--format", fmt, "--out", str(out)]) == 0, fmt
+        text = capsys.readouterr().out
+        assert out.exists() and f"wrote {out}" in text
+    # the approximations over the observed annulus, checked independently
+    px, pts = _through_mirror(rig, np.random.default_rng(2), ex.working_range(cal)[0], n=6000)
+    r = np.linalg.norm(px - centre, axis=1)
+    keep = (r >= radii.min()) & (r <= radii.max())
+    px, pts = px[keep], pts[keep]
+    fs = _read_fs(tmp_path / "opencv-omnidir.txt")
+    k, d, xi = (fs.getNode(n).mat() for n in ("camera_matrix", "distortion_coefficients", "xi"))
+    r_m, t_m = fs.getNode("R_cam_model").mat(), fs.getNode("t_cam_model_mm").mat().ravel()
+    uv_mei = mei([k[0, 0], k[1, 1], k[0, 2], k[1, 2], xi[0, 0], *d.ravel()], (pts - t_m) @ r_m)
+    m = read_ocamcalib(tmp_path / "ocamcalib.txt")
+    r_o, t_o = _frame_of(m["comments"])
+    uv_ocam = world2cam(m, (pts - t_o) @ r_o)
+    for uv, rms in (
+        (uv_mei, fs.getNode("central_approximation_rms_px").real()),
+        (uv_ocam, _reported(" ".join(m["comments"]))[0]),
+    ):
+        err = np.sqrt(np.mean(np.sum((uv - px) ** 2, axis=1)))
+        assert err == pytest.approx(rms, rel=0.25) and rms < 1.0, (err, rms)
+    report = tmp_path / "report.html"
+    assert main(["report", str(cal_path), "--images", str(MEI_IMAGES), "--out", str(report)]) == 0
+    assert report.stat().st_size > 100_000 and "<img" in report.read_text()

@@ -20,11 +20,12 @@ The camera's own lens (pinhole with Brown distortion) is exact in ``opencv``, ``
 has a ``k3``, the format's model is fitted to the camera over the image and the fit's error is
 reported. A catadioptric calibration (one with a mirror) is not central: no single viewpoint sees
 every reflected ray. For ``opencv-omnidir``, ``kalibr`` (``omni``) and ``ocamcalib`` the export is
-the best central approximation in the tool's model, fitted over the whole mirror's field
+the best central approximation in the tool's model, fitted over the mirror's field
 (:func:`field_samples`: every pixel of a grid over the mirror's image that sees a valid reflected
-ray, at three ranges about a working range); its RMS and largest pixel difference are written into
-the file and returned. ``opencv``, ``ros`` and ``mrcal`` (and every format with ``lens=True``)
-export the camera behind the mirror, its lens alone, and say so.
+ray, at three ranges about a working range; where the file carries its problem, only the pixels
+of the annulus where the calibration has data, :func:`observed_radii`); its RMS and largest pixel
+difference are written into the file and returned. ``opencv``, ``ros`` and ``mrcal`` (and every
+format with ``lens=True``) export the camera behind the mirror, its lens alone, and say so.
 
 The approximation's frame. A central model projects points of its own frame; here
 ``X_model = B R(w)^T (X_cam - t)``: ``t`` (mm) is the fitted viewpoint and ``R(w)`` a fitted
@@ -132,12 +133,16 @@ def points_at_ranges(rig: Rig, pixels, ranges_mm, lens: bool = False) -> tuple[n
     return pts, np.asarray(ok) & np.all(np.isfinite(pts), axis=-1)
 
 
-def field_samples(rig: Rig, range_mm: float, lens: bool = False, n_grid: int = 60) -> FieldSamples:
+def field_samples(
+    rig: Rig, range_mm: float, lens: bool = False, n_grid: int = 60, radii_px: tuple[float, float] | None = None
+) -> FieldSamples:
     """Pixels of an ``n_grid`` x ``n_grid`` grid over the image (over the sensor's part of the
     mirror's image where the rig has a mirror and ``lens`` is False) and their points at
     ``RANGE_FACTORS`` times ``range_mm`` from the camera's centre along each pixel's ray (the
     reflected ray of :func:`slcvjax.geometry.mirror.back_project`, else the lens's ray); pixels
-    without a valid ray at a range are left out. Raises ``ValueError`` where none is left."""
+    without a valid ray at a range are left out. ``radii_px``: for a mirror, keep only the pixels
+    whose distance from the image of the mirror's apex lies in this range (px): where the
+    calibration has data (:func:`observed_radii`). Raises ``ValueError`` where none is left."""
     cam = rig.camera
     w, h = int(cam.width), int(cam.height)
     use_mirror = rig.mirror is not None and not lens
@@ -157,6 +162,9 @@ def field_samples(rig: Rig, range_mm: float, lens: bool = False, n_grid: int = 6
             lo, hi = np.maximum(uv.min(axis=0) - pad, lo), np.minimum(uv.max(axis=0) + pad, hi)
     us, vs = np.linspace(lo[0], hi[0], n_grid), np.linspace(lo[1], hi[1], n_grid)
     grid = np.stack(np.meshgrid(us, vs), axis=-1).reshape(-1, 2)
+    if use_mirror and radii_px is not None:
+        r = np.linalg.norm(grid - apex_pixel(rig), axis=1)
+        grid = grid[(r >= radii_px[0]) & (r <= radii_px[1])]
     ranges = tuple(float(range_mm) * f for f in RANGE_FACTORS)
     r = jnp.asarray(ranges)
     if use_mirror:
@@ -172,6 +180,43 @@ def field_samples(rig: Rig, range_mm: float, lens: bool = False, n_grid: int = 6
     if len(idx_pix) < 50:
         raise ValueError(f"the {'mirror' if use_mirror else 'camera'} gives {len(idx_pix)} valid rays: too few to fit")
     return FieldSamples(grid[idx_pix], pts[idx_pix, idx_r], idx_r, ranges, use_mirror)
+
+
+def apex_pixel(rig: Rig) -> np.ndarray:
+    """The pixel (2,) where the camera sees the mirror's apex (the centre of the mirror's image)."""
+    cam, apex = rig.camera, np.asarray(rig.mirror.apex, float)
+    xy = apex[:2] / cam.unit if cam.telecentric else apex[:2] / apex[2]
+    return np.array([float(cam.fx) * xy[0] + float(cam.cx), float(cam.fy) * xy[1] + float(cam.cy)])
+
+
+def observed_radii(cal: Calibration, margin: float = 0.05) -> tuple[float, float] | None:
+    """The range of distances (px) from :func:`apex_pixel` of the pixels the calibration was
+    fitted to through the mirror (its stored problem's board points, spots and stripe samples),
+    widened by ``margin`` of its width at each end: the annulus where the calibration has data.
+    None where the file carries no problem or no such pixel.  Outside it the fitted model (a high
+    distortion term, a mirror's rim held at a placeholder) is an extrapolation, and a central
+    approximation fitted there would describe that extrapolation."""
+    obs = ((cal.extra or {}).get("problem") or {}).get("observations")
+    if not isinstance(obs, dict) or cal.rig.mirror is None:
+        return None
+    pix = []
+    for view in obs.get("views") or []:
+        for px in (view.get("boards") or {}).values():
+            pix.extend(px)
+        pix.extend(s.get("pixel") for s in view.get("spots") or [] if isinstance(s, dict))
+        for st in view.get("stripes") or []:
+            pix.extend(st.get("pixels") or [])
+    try:
+        uv = np.array([p for p in pix if p is not None], dtype=float).reshape(-1, 2)
+    except (TypeError, ValueError):
+        return None
+    uv = uv[np.all(np.isfinite(uv), axis=1)]
+    if len(uv) < 3:
+        return None
+    r = np.linalg.norm(uv - apex_pixel(cal.rig), axis=1)
+    lo, hi = float(r.min()), float(r.max())
+    pad = margin * (hi - lo)
+    return max(lo - pad, 0.0), hi + pad
 
 
 def viewpoint(samples: FieldSamples) -> np.ndarray:
@@ -702,11 +747,19 @@ def export(cal: Calibration, fmt: str, path, range_mm: float | None = None, lens
     else:
         why = "as asked"
 
+    radii = observed_radii(cal) if mirror else None
+
     def samples():
         try:
-            return field_samples(cal.rig, range_mm, lens=not mirror)
+            return field_samples(cal.rig, range_mm, lens=not mirror, radii_px=radii)
         except ValueError as e:
             raise FormatError(str(e)) from None
+
+    if radii is not None:
+        why += (
+            f"; the field: the annulus {radii[0]:.1f}-{radii[1]:.1f} px from the mirror's centre in the image, "
+            "where the calibration has data"
+        )
 
     fit = None
     if fmt in ("opencv", "ros", "mrcal") or (fmt == "kalibr" and not mirror and float(camera.dist[4]) == 0.0):
