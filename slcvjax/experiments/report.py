@@ -48,6 +48,7 @@ from ..observations.formats import read_calibration
 from ..observations.problem import KIND_NAMES, Kind, Layout, Packed
 from ..plots import plot_rig, pyplot
 from ..support.persist import PersistentJit
+from .export import apex_pixel, observed_radii
 
 log = logging.getLogger(__name__)
 
@@ -300,10 +301,13 @@ def _load_images(folder: Path | None, names: list[str]) -> dict[str, np.ndarray]
     for p in sorted(folder.iterdir()) if folder.is_dir() else []:
         if p.suffix.lower() in _IMAGE_SUFFIXES:
             files.setdefault(p.stem, p)
+            files.setdefault(p.name, p)
     out = {}
     for n in names:
-        if n in files and files[n].is_file():
-            img = cv2.imread(str(files[n]), cv2.IMREAD_COLOR)
+        # a view is named by its image's file name (omni, detect) or its stem
+        f = files.get(n) or files.get(Path(n).stem)
+        if f is not None and f.is_file():
+            img = cv2.imread(str(f), cv2.IMREAD_COLOR)
             if img is not None:
                 out[n] = img
     return out
@@ -326,11 +330,21 @@ def _scale_bar(gain: float, length_px: float) -> float:
 def _view_figure(name, size, image, rim_model, pts, vec, kinds, outlier, rim_pixels, gain, title) -> str:
     """One view: the image (or a grey canvas), the observed points, their residuals at ``gain``
     and a scale arrow of 1 px of residual; a catadioptric view (``rim_model`` given) is cropped to
-    the image of the mirror's rim."""
+    the image of the mirror's rim where that encloses the view's points (a rim the images do not
+    show, such as the placeholder radius of a calibration whose rim is unknown, leaves the whole
+    image)."""
     plt = pyplot()
     w, h = size
     x0, y0, x1, y1 = 0.0, 0.0, float(w), float(h)
-    if rim_model is not None and len(rim_model):
+    seen = pts[np.all(np.isfinite(pts), axis=1)]
+    rim_ok = rim_model is not None and len(rim_model) > 2 and np.all(np.isfinite(rim_model))
+    if rim_ok:  # the rim's image encloses what the view saw through the mirror
+        from matplotlib.path import Path as Polygon
+
+        rim_ok = bool(np.all(Polygon(rim_model).contains_points(seen))) and bool(
+            np.all((rim_model > -0.5 * w) & (rim_model < 1.5 * np.array([w, h])))
+        )
+    if rim_ok:
         pad = 0.04 * float(np.ptp(rim_model[:, 0]))
         x0, y0 = np.maximum(rim_model.min(axis=0) - pad, 0.0)
         x1, y1 = np.minimum(rim_model.max(axis=0) + pad, [w, h])
@@ -796,7 +810,18 @@ def report_html(
             pts = np.asarray(v0[1].apply(np.asarray(obs.boards[v0[0]], dtype=float)))
             chosen = float(np.mean(np.linalg.norm(pts, axis=1)))
             why = f"the mean distance of board {v0[0]}'s points in view {obs.views[0].name} (no determined laser)"
-    proj = projection_std(result.rig, result.cov.glob, chosen, n_grid)
+    radii = observed_radii(cal)
+    grid, where = None, "the mirror's image"
+    if radii is not None:  # where the calibration had data: outside it the model is an extrapolation
+        c = apex_pixel(result.rig)
+        lo = np.maximum(c - radii[1], 0.0)
+        hi = np.minimum(c + radii[1], [size[0] - 1.0, size[1] - 1.0])
+        grid = (np.linspace(lo[0], hi[0], n_grid), np.linspace(lo[1], hi[1], n_grid))
+        where = f"the annulus {radii[0]:.0f}-{radii[1]:.0f} px about the mirror's centre where the calibration had data"
+    proj = projection_std(result.rig, result.cov.glob, chosen, n_grid, grid)
+    if radii is not None:
+        r = np.hypot(*(np.stack(np.meshgrid(proj["u"], proj["v"]), axis=-1) - c).transpose(2, 0, 1))
+        proj["std_mm"] = np.where((r >= radii[0]) & (r <= radii[1]), proj["std_mm"], np.nan)
     s = proj["std_mm"]
     finite = s[np.isfinite(s)]
     stats = (
@@ -807,7 +832,7 @@ def report_html(
     )
     img = _projection_figure(proj, rim_model, size)
     body = (
-        f"<figure>{img}<figcaption>Per pixel of a {n_grid} x {n_grid} grid over the mirror's image, the standard "
+        f"<figure>{img}<figcaption>Per pixel of a {n_grid} x {n_grid} grid over {where}, the standard "
         f"deviation (root of the trace of its 3x3 covariance) of the point where the pixel's reflected ray is "
         f"{proj['range_mm']:.1f} mm from the camera's centre ({why}), propagated (<code>jax.jacfwd</code> "
         "through the back-projection) from the covariance of the camera and the mirror; the pixel itself is "
