@@ -103,6 +103,8 @@ class CalibrationOptions:
             perspective camera is kept over the telecentric one.
         auto_folds: ``mirror_shape.kind = "auto"``: the folds of the cross-validation over the
             views that picks the mirror's kind.
+        consistency_level: the final check's family-wise false-alarm level: the chance that
+            residuals which do follow the noise model fail it (:mod:`slcvjax.calibration.consistency`).
     """
 
     robust: RobustPolicy = field(default_factory=RobustPolicy)
@@ -111,6 +113,7 @@ class CalibrationOptions:
     rigid: bool | tuple[str, ...] = False
     projection_test_level: float = 0.05
     auto_folds: int = 5
+    consistency_level: float = 0.01
 
     def __post_init__(self):
         object.__setattr__(self, "freeze", tuple(sorted(set(self.freeze))))
@@ -121,6 +124,8 @@ class CalibrationOptions:
             object.__setattr__(self, "rigid", tuple(self.rigid))
         if isinstance(self.max_steps, bool) or not isinstance(self.max_steps, int) or self.max_steps < 1:
             raise ValueError(f"max_steps: expected a whole number of at least 1, got {self.max_steps!r}")
+        if not 0.0 < self.consistency_level < 1.0:
+            raise ValueError(f"consistency_level: expected a level in (0, 1), got {self.consistency_level}")
         if not 0.0 < self.projection_test_level < 1.0:
             raise ValueError(f"projection_test_level: expected a level in (0, 1), got {self.projection_test_level}")
         if isinstance(self.auto_folds, bool) or not isinstance(self.auto_folds, int) or self.auto_folds < 2:

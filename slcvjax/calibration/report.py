@@ -21,6 +21,7 @@ from ..observations.formats import Calibration, Observations
 from ..observations.problem import KIND_NAMES, Kind, kinds_of, unstack_poses
 from ..support.safe import std_of_variance
 from .bound import laser_std, laser_working_points, sheet_std, sheet_working_points
+from .consistency import final_check
 from .evaluate import per_observation
 from .result import CalibrationResult
 from .stored import problem_json
@@ -108,6 +109,7 @@ def report(result: CalibrationResult, obs: Observations | None = None) -> dict:
         obs.calibration_views[c].name: _rms(norm[ok & (kind == Kind.CHESS) & (view == c)])
         for c in result.packed.chess_keys
     }
+    check = final_check(result, (norm, kind, ok, view, board, laser, index), outlier)
     outliers = []
     for i in np.flatnonzero(outlier):
         item = {
@@ -143,16 +145,21 @@ def report(result: CalibrationResult, obs: Observations | None = None) -> dict:
     held = list(result.undetermined_lasers)
     pos[held], ang[held] = np.nan, np.nan  # held at a placeholder: a std of 0 would claim it known
     last = result.passes[-1] if result.passes else None
+    status = []
+    if not result.converged and last is not None:
+        status.append(
+            f"not a minimum: the last pass ({last.name}) {last.result} after {last.steps} steps; "
+            "the std below are those of the point where it stopped"
+        )
+    if check["failed"]:
+        status.append(_check_status(check))
+    lasers = _element_uncertainty(result, cov, x_ref, pos, ang, held)
+    for i, factor in check["laser_scale"].items():
+        _scale_laser(lasers[i], factor)
     uncertainty = {
         "converged": result.converged,
-        **(
-            {}
-            if result.converged or last is None
-            else {
-                "status": f"not a minimum: the last pass ({last.name}) {last.result} after {last.steps} steps; "
-                "the std below are those of the point where it stopped"
-            }
-        ),
+        **({"status": "; ".join(status)} if status else {}),
+        "consistency": {k: check[k] for k in ("level", "tests", "failed")},
         "sigma_px": sigma,
         "camera_std": dict(zip(CAMERA_NAMES, _finite_or_none(sd[CAMERA_COLUMNS]), strict=True)),
         "mirror_std": {
@@ -160,7 +167,7 @@ def report(result: CalibrationResult, obs: Observations | None = None) -> dict:
             "axis_tilt_deg": _finite_or_none(np.degrees(sd[TILT_COLUMNS])),
         }
         | ({"conic_constant": _finite_or_none(sd[SHAPE_COLUMN])} if float(result.masks.glob[SHAPE_COLUMN]) else {}),
-        "lasers": _element_uncertainty(result, cov, x_ref, pos, ang, held),
+        "lasers": lasers,
         "covariance": {
             "parameters": f"camera ({', '.join(CAMERA_NAMES)}), mirror (apex dx, dy, dz mm; axis tilt "
             "e1, e2 rad; conic constant, 0 where the shape is given), then per laser (point offset e1, e2 mm; "
@@ -178,6 +185,32 @@ def report(result: CalibrationResult, obs: Observations | None = None) -> dict:
     if result.box is not None:
         uncertainty["rigid_box"] = _box_json(result.box)
     return {"residuals": residuals, "uncertainty": uncertainty}
+
+
+def _check_status(check: dict) -> str:
+    """``uncertainty.status``'s line for a failed final check."""
+    names = ", ".join(
+        f"{f['group']} ({f['ratio']:.2f}x its expected spread)"
+        if f["test"] == "spread"
+        else f"{f['group']} (not normal)"
+        for f in check["failed"][:6]
+    )
+    more = f" and {len(check['failed']) - 6} more" if len(check["failed"]) > 6 else ""
+    return (
+        f"inconsistent: {len(check['failed'])} of {check['tests']} final checks fail at level {check['level']:g} "
+        f"({names}{more}): the residuals do not follow the noise model there, and the std assume they do; "
+        "a laser's std is scaled by the root of its spread ratio"
+    )
+
+
+def _scale_laser(item: dict, factor: float) -> None:
+    """Scale a laser's std in ``uncertainty.lasers[i]`` by ``factor`` (>= 1) and say so."""
+    for key in ("position_std_mm", "direction_std_deg", "half_angle_std_deg"):
+        if item.get(key) is not None:
+            item[key] = item[key] * factor
+    item["std_scale"] = factor
+    note = f"inconsistent: its residuals spread {factor:.2f}x their noise; its std are scaled by {factor:.2f}"
+    item["status"] = f"{item['status']}; {note}" if item.get("status") else note
 
 
 def _point_uncertainty(i, x_ref, pos, ang, held) -> dict:
