@@ -69,6 +69,7 @@ ASPECT = 2.0  # the first panorama's columns per pixel of rim circumference
 ROWS_PER_PX = 1.5  # the panorama's rows per pixel of radius (the first one; the second keeps the count)
 NEIGHBOUR_SQUARES = 2.5  # markers closer than this many squares (board units) vouch for each other
 AGREE = 0.25  # of a square's size: how far a marker's homography may place a neighbour or a corner
+MIN_WINDOW_PX = 2.0  # the sub-pixel window's least half-width along each board axis, px
 MAX_SHIFT = 0.25  # of the local square's size in pixels: the largest move of the sub-pixel refinement
 APRIL_CORNER = (1, 0, 3, 2)  # OpenCV's corner k of a Kalibr tag -> its column in aprilgrid_tag_corners
 
@@ -359,7 +360,9 @@ def _april_corners(board: CodedBoard, markers: dict[int, np.ndarray]):
 # --------------------------------------------------------------------------- sub-pixel
 
 
-def refine_saddle(grey: np.ndarray, uv: np.ndarray, J: np.ndarray, half: float, iters: int = 12) -> tuple:
+def refine_saddle(
+    grey: np.ndarray, uv: np.ndarray, J: np.ndarray, half: float, iters: int = 12, min_px: float = MIN_WINDOW_PX
+) -> tuple:
     """Sub-pixel corners in the original image by the gradient-orthogonality condition.
 
     Args:
@@ -382,12 +385,14 @@ def refine_saddle(grey: np.ndarray, uv: np.ndarray, J: np.ndarray, half: float, 
     h_img, w_img = grey.shape
     out, ok = np.array(uv, float), np.zeros(len(uv), bool)
     for n in range(len(uv)):
-        A = J[n]
+        # each board axis's half-width: ``half`` mm, or ``min_px`` pixels where that is fewer
+        hb = np.maximum(half, min_px / np.maximum(np.linalg.norm(J[n], axis=0), 1e-9))
+        A = J[n] * hb[None, :]  # the window's unit square -> image px
         try:
             Ai = np.linalg.inv(A)
         except np.linalg.LinAlgError:
             continue
-        ext = np.abs(A).sum(axis=1) * half + 1.5  # the window's half-extent in px along u, v
+        ext = np.abs(A).sum(axis=1) + 1.5  # the window's half-extent in px along u, v
         p = out[n].copy()
         good = False
         for _ in range(iters):
@@ -398,7 +403,7 @@ def refine_saddle(grey: np.ndarray, uv: np.ndarray, J: np.ndarray, half: float, 
                 break
             vv, uu = np.mgrid[v0 : v1 + 1, u0 : u1 + 1]
             q = np.stack([uu.ravel(), vv.ravel()], -1).astype(float)
-            b = (q - p) @ Ai.T / half
+            b = (q - p) @ Ai.T
             w = np.clip(1 - b[:, 0] ** 2, 0, None) * np.clip(1 - b[:, 1] ** 2, 0, None)
             if np.count_nonzero(w) < 6:
                 good = False
@@ -550,3 +555,57 @@ def detect_coded(
         if (~ok).any():
             problems.append(f"{b.name}: {int((~ok).sum())} corner(s) left out (no sub-pixel fit)")
     return CodedDetection(out, problems, counts, pano.reversed)
+
+
+# --------------------------------------------------------------------------- direct views, folders
+
+
+def detect_direct(bgr: np.ndarray, spec: dict) -> tuple[np.ndarray, np.ndarray] | None:
+    """A coded board seen directly (no mirror): ``(pixels (N, 2), seen (N,))`` by its point index, or
+    None where no corner is found.
+
+    ChArUco: ``cv2.aruco.CharucoDetector`` (OpenCV's board of the spec; a corner's id is its
+    point index), then ``cv2.cornerSubPix`` (5 x 5 window).  AprilGrid: each tag's four corners
+    (Kalibr's indices, as through the mirror), then ``cv2.cornerSubPix``.  Markers whose ids are
+    not the board's are ignored by OpenCV's board (ChArUco) or dropped (AprilGrid)."""
+    grey = bgr if bgr.ndim == 2 else cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)
+    board = CodedBoard.of("direct", spec)
+    n = len(board.points)
+    if spec["type"] == "charuco":
+        d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, spec["dictionary"]))
+        cb = cv2.aruco.CharucoBoard(tuple(spec["squares"]), spec["square_mm"], spec["marker_mm"], d, board.ids)
+        cc, cid, _, _ = cv2.aruco.CharucoDetector(cb).detectBoard(grey)
+        if cid is None or not len(cid):
+            return None
+        ids, px = cid.ravel().astype(int), cc.reshape(-1, 2)
+    else:
+        corners, mids, _ = _detector(board.dictionary).detectMarkers(grey)
+        if mids is None:
+            return None
+        owner = {int(i): k for k, i in enumerate(board.ids)}
+        found = {owner[int(i)]: c.reshape(4, 2) for c, i in zip(corners, mids.ravel(), strict=True) if int(i) in owner}
+        found = _consistent(board, found)
+        if not found:
+            return None
+        ids, px, _ = _april_corners(board, found)
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-4)
+    px = cv2.cornerSubPix(grey, np.float32(px).reshape(-1, 1, 2), (5, 5), (-1, -1), crit).reshape(-1, 2)
+    pixels, seen = np.zeros((n, 2)), np.zeros(n, bool)
+    pixels[ids], seen[ids] = px, True
+    return pixels, seen
+
+
+def coded_walls(setup) -> dict[str, dict]:
+    """The setup's coded targets seen through the mirror: name -> spec (charuco, aprilgrid)."""
+    return {
+        k: b.target
+        for k, b in setup.boards.items()
+        if b.azimuth_deg is not None and b.target is not None and b.target["type"] in ("charuco", "aprilgrid")
+    }
+
+
+def detect_coded_view(bgr: np.ndarray, setup, disc=None) -> CodedDetection:
+    """:func:`detect_coded` for the coded walls of a ``slcv-setup/1`` (:func:`coded_walls`), the
+    panorama's seam in the widest gap between their nominal azimuths."""
+    specs = coded_walls(setup)
+    return detect_coded(bgr, specs, {k: setup.boards[k].azimuth_deg for k in specs}, disc)
