@@ -68,7 +68,10 @@ WRAP_DEG = 45.0  # the panorama runs this far past a full turn (a board across t
 ASPECT = 2.0  # the first panorama's columns per pixel of rim circumference
 ROWS_PER_PX = 1.5  # the panorama's rows per pixel of radius (the first one; the second keeps the count)
 NEIGHBOUR_SQUARES = 2.5  # markers closer than this many squares (board units) vouch for each other
-AGREE = 0.25  # of a square's size: how far a marker's homography may place a neighbour or a corner
+AGREE = 0.25  # of a square's size: how far two markers' homographies may place a corner apart
+# of a square's size: how far a marker's affine map may place a neighbouring marker (two ChArUco
+# markers' places differ by a square's diagonal at least, two tags' by a tag's pitch)
+AGREE_MARKERS = 0.4
 MIN_WINDOW_PX = 2.0  # the sub-pixel window's least half-width along each board axis, px
 MAX_SHIFT = 0.25  # of the local square's size in pixels: the largest move of the sub-pixel refinement
 APRIL_CORNER = (1, 0, 3, 2)  # OpenCV's corner k of a Kalibr tag -> its column in aprilgrid_tag_corners
@@ -283,8 +286,8 @@ def _h_jacobian(H: np.ndarray, xy: np.ndarray) -> np.ndarray:
 
 def _consistent(board: CodedBoard, found: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
     """The markers of ``found`` (index into ``board.ids`` -> (4, 2) pano corners) that the board's
-    geometry confirms: each marker's homography places some other marker within
-    ``NEIGHBOUR_SQUARES`` squares of it (board units) within ``AGREE`` squares (in that marker's
+    geometry confirms: each marker's affine map places some other marker within
+    ``NEIGHBOUR_SQUARES`` squares of it (board units) within ``AGREE_MARKERS`` squares (in that marker's
     scale) of where it was found, or the other way round.  A marker with no other marker of
     its board that near is kept (nothing contradicts it); one with neighbours, none of which
     agrees, is dropped."""
@@ -292,7 +295,13 @@ def _consistent(board: CodedBoard, found: dict[int, np.ndarray]) -> dict[int, np
     if len(keys) < 2:
         return dict(found)
     centres_b = {k: board.marker_corners[k].mean(axis=0) for k in keys}
-    hs = {k: _homography(board.marker_corners[k], found[k]) for k in keys}
+    # each marker's affine map (least squares on its four corners): steadier than its homography
+    # over the one to two squares to its neighbours
+    hs = {}
+    for k in keys:
+        X = np.concatenate([board.marker_corners[k], np.ones((4, 1))], axis=1)
+        A = np.linalg.lstsq(X, found[k], rcond=None)[0].T
+        hs[k] = np.vstack([A, [0.0, 0.0, 1.0]])
     centres_p = {k: found[k].mean(axis=0) for k in keys}
     scale = {
         k: math.sqrt(abs(cv2.contourArea(np.float32(found[k])))) / np.ptp(board.marker_corners[k][:, 0]) for k in keys
@@ -300,7 +309,7 @@ def _consistent(board: CodedBoard, found: dict[int, np.ndarray]) -> dict[int, np
 
     def agree(a: int, b: int) -> bool:
         err = np.linalg.norm(_apply(hs[a], centres_b[b][None])[0] - centres_p[b])
-        return bool(err < AGREE * board.unit * scale[a])
+        return bool(err < AGREE_MARKERS * board.unit * scale[a])
 
     keep = {}
     for a in keys:
@@ -461,25 +470,35 @@ def _sharpen(pano: np.ndarray) -> np.ndarray:
 
 
 def _find_markers(pano_img: np.ndarray, boards: list[CodedBoard], n_cols: int) -> dict[str, dict[int, np.ndarray]]:
-    """Markers in the panorama by board: name -> {marker index: (4, 2) pano corners}.  Ids of no
-    board are dropped; a marker found twice (once more past the full turn) is kept where its
-    column is larger (there its board is whole)."""
+    """Markers in the panorama by board: name -> {marker index: (4, 2) pano corners}.
+
+    Ids of no board are dropped.  A marker seen twice (once more past the full turn) is taken
+    where it is nearest its board's middle (the circular mean of its markers' columns, moved
+    past the full turn where it lies in the first half of the wrap), so that a board across the
+    seam is whole."""
     owner = {int(i): (b, k) for b in boards for k, i in enumerate(b.ids)}
     sharp = _sharpen(pano_img)
-    out: dict[str, dict[int, np.ndarray]] = {b.name: {} for b in boards}
+    copies: dict[str, dict[int, list[np.ndarray]]] = {b.name: {} for b in boards}
     for dictionary in sorted({b.dictionary for b in boards}):
         corners, ids, _ = _detector(dictionary).detectMarkers(sharp)
         if ids is None:
             continue
         for c, i in zip(corners, ids.ravel(), strict=True):
             hit = owner.get(int(i))
-            if hit is None or hit[0].dictionary != dictionary:
-                continue
-            b, k = hit
-            quad = c.reshape(4, 2).astype(float)
-            prev = out[b.name].get(k)
-            if prev is None or quad[:, 0].mean() > prev[:, 0].mean():
-                out[b.name][k] = quad
+            if hit is not None and hit[0].dictionary == dictionary:
+                copies[hit[0].name].setdefault(hit[1], []).append(c.reshape(4, 2).astype(float))
+    wrap = pano_img.shape[1] - n_cols
+    out: dict[str, dict[int, np.ndarray]] = {}
+    for name, per in copies.items():
+        out[name] = {}
+        if not per:
+            continue
+        cols = np.array([q[:, 0].mean() for qs in per.values() for q in qs])
+        mid = np.angle(np.exp(2j * np.pi * cols / n_cols).mean()) % (2 * np.pi) * n_cols / (2 * np.pi)
+        if mid < wrap / 2:
+            mid += n_cols
+        for k, qs in per.items():
+            out[name][k] = min(qs, key=lambda q: abs(q[:, 0].mean() - mid))
     return out
 
 
