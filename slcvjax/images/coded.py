@@ -25,25 +25,27 @@ in the original image.  Per image (:func:`detect_coded`):
 3. **Markers**: ``cv2.aruco.ArucoDetector`` (the board's dictionary; ``DICT_APRILTAG_36h11`` for
    an AprilGrid), every id looked up among the setup's boards (their ids are disjoint, so an id
    names its board); an id of no board is dropped.  A marker is kept only where the board's
-   geometry agrees with its neighbours (:func:`_consistent`): the homography of each detected
+   geometry agrees with its neighbours (:func:`_consistent`): the affine map of each detected
    marker (its four corners against their board positions) predicts where every other marker of
    its board lies; a marker that no other marker within ``NEIGHBOUR_SQUARES`` squares places within
-   ``AGREE`` of a square's size is a misread id or a false marker, and is dropped (a lone marker
-   of a board is kept: its corners come from itself only).
-4. **Corners**: ChArUco corners by ``cv2.aruco.CharucoDetector.detectBoard`` on the panorama with
-   the kept markers (OpenCV's board of the spec: a corner's id is its point index, and it needs
-   two adjacent markers); a corner is then kept only where every kept marker adjacent to it (one
-   of the two white squares that touch it) predicts it within ``AGREE``.  AprilGrid corners are
-   each tag's four corners, Kalibr's indices (:func:`~slcvjax.observations.targets.aprilgrid_tag_corners`;
-   OpenCV's corner ``k`` of a Kalibr print is the tag's corner ``APRIL_CORNER[k]``).
+   ``AGREE_MARKERS`` of a square's size is a misread id or a false marker, and is dropped (a lone
+   marker of a board is kept: nothing contradicts it).
+4. **Corners**: a ChArUco corner (its id is its point index, as OpenCV's) is where the homography
+   of each kept marker in a white square touching it puts it; where two do they must agree within
+   ``AGREE`` of a square (:func:`_charuco_corners`: OpenCV's ``CharucoDetector`` interpolates over
+   several markers at once, which the panorama's bend defeats; it serves the direct views,
+   :func:`detect_direct`).  AprilGrid corners are each tag's four corners, Kalibr's indices
+   (:func:`~slcvjax.observations.targets.aprilgrid_tag_corners`; OpenCV's corner ``k`` of a Kalibr
+   print is the tag's corner ``APRIL_CORNER[k]``).
 5. **Sub-pixel**: each corner is mapped back through the panorama's map (exact: the map is
    closed form) and refined in the original image (:func:`refine_saddle`): the gradient of every
    pixel near a corner is perpendicular to the line from the corner to it (Forstner's and
    ``cv2.cornerSubPix``'s condition), solved in the least-squares sense over a window that is
    small in the board's own units (inside the white margin around a ChArUco marker, inside a
-   tag's border bit), so that no marker bit enters it even where the mirror squeezes the square
-   to a few pixels.  A corner whose refinement moves it more than ``MAX_SHIFT`` of the local
-   square, or whose window is degenerate, is dropped.
+   tag's border bit) but at least ``MIN_WINDOW_PX`` wide along each board axis: where the mirror
+   squeezes that margin narrower (near the apex) a marker's edge enters the window and biases the
+   corner (``benchmarks/coded_targets.py``: 0.17 px RMS where the margin is 1-2 px).  A corner
+   whose refinement moves it more than ``MAX_SHIFT`` of the local square, or whose window is degenerate, is dropped.
 
 Every corner is labelled by its own marker ids and the board's geometry, never by its place in
 a grid: a corner not found is absent (null), never guessed.
