@@ -47,6 +47,7 @@ from ..observations.formats import (
     read_sensor_fields,
 )
 from ..observations.targets import check_disjoint_ids, grid_shape, read_board, spec_json
+from .coded import coded_walls, detect_coded_view, detect_direct
 from .stripes import StripeSamples, find_stripes
 
 SETUP_FORMAT = "slcv-setup/1"
@@ -992,7 +993,7 @@ def label_boards(
 
     A target left out (ambiguous rows, or dots that do not fit the grid) gets its possible
     placements (:func:`candidate_placements`) in ``candidates[name]`` when a dict is given."""
-    walls = {k: b for k, b in setup.boards.items() if b.azimuth_deg is not None}
+    walls = {k: b for k, b in setup.boards.items() if b.azimuth_deg is not None and b.target is None}  # dot grids
     problems: list[str] = []
     out = {k: (np.zeros((len(b.points), 2)), np.zeros(len(b.points), bool)) for k, b in walls.items()}
     if det.disc is None:  # the caller reports the image's "no mirror found"
@@ -1341,8 +1342,16 @@ def detect_folder(folder: str | Path, progress: bool = False) -> tuple[Observati
         images[im] = img
     for im, b in items:
         layout = setup.boards[b]
-        corners = detect_chessboard(images[im], layout.cols, layout.rows)
         name = Path(im).stem
+        if layout.target is not None and layout.target["type"] in ("charuco", "aprilgrid"):
+            got = detect_direct(images[im], layout.target)  # a coded board: by its markers' ids
+            counts[name] = {"corners": 0 if got is None else int(got[1].sum())}
+            if got is None:
+                problems[name] = [f"no {layout.target['type']} corner found"]
+            else:
+                cal_views.append(CalibrationViewObs(name, b, *got))
+            continue
+        corners = detect_chessboard(images[im], layout.cols, layout.rows)
         if corners is None:
             problems[name] = [f"no {layout.cols}x{layout.rows} chessboard found"]
             counts[name] = {"corners": 0}
@@ -1355,6 +1364,9 @@ def detect_folder(folder: str | Path, progress: bool = False) -> tuple[Observati
     for v, d in enumerate(dets):
         cands: dict = {}
         bs, pr = label_boards(d, setup, cands)
+        if coded_walls(setup):  # ChArUco and AprilGrid walls: each corner by its own markers' ids
+            cd = detect_coded_view(images[setup.views[v]], setup, d.disc)
+            bs, pr = {**bs, **cd.boards}, pr + cd.problems
         boards_seen.append(bs)
         board_probs.append(pr)
         for b, placed in cands.items():
@@ -1403,18 +1415,18 @@ def detect_folder(folder: str | Path, progress: bool = False) -> tuple[Observati
 
 
 def _check_detectable(setup: Setup, path: Path) -> None:
-    """Refuse, naming the board, what the detector cannot find yet: a target seen through the
-    mirror that is not a grid of dots, and a direct view of a board that is not a chessboard."""
+    """Refuse, naming the board, what the detector cannot find: a chessboard seen through the mirror
+    (its corners carry no id: which wall and which corner could not be told without guessing)."""
     for name, b in setup.boards.items():
         kind = "dots" if b.target is None else b.target["type"]
-        if b.azimuth_deg is not None and kind != "dots":
+        if b.azimuth_deg is not None and kind == "chessboard":
             raise FormatError(
-                f"{path}: boards.{name}.type: the detector finds dots through the mirror, not a {kind} "
-                "board (yet); its printable target and the observations' format accept it"
+                f"{path}: boards.{name}.type: the detector finds dots, ChArUco and AprilGrid targets through "
+                f"the mirror, not a {kind} board; its printable target and the observations' format accept it"
             )
     for i, (_, b) in enumerate(setup.chessboard_views):
         kind = "dots" if setup.boards[b].target is None else setup.boards[b].target["type"]
-        if kind not in ("dots", "chessboard"):
+        if kind not in ("dots", "chessboard", "charuco", "aprilgrid"):
             raise FormatError(
                 f"{path}: chessboard_views[{i}].board: direct views are detected as chessboards, "
                 f"not as board {b!r}'s {kind} (yet)"

@@ -36,6 +36,7 @@ from ..geometry.rig import project_board_points, project_rim
 from ..geometry.sheets import sheet_gradient, sheet_value
 from ..support.safe import safe_div, safe_norm, safe_normalize
 from .pipe import beam_pipe_point
+from .render_coded import drawing_albedo, pack_drawings
 
 WALL = 0.72
 DOT = 0.06
@@ -170,10 +171,15 @@ def _stripe_light(x, normal, apex, axis, half_angle, fan, on, sopts):
     return sopts[1] * jnp.sum(jax.vmap(one)(apex, axis, half_angle, fan, on))
 
 
-def _cata_shade(origin, direction, valid, seen, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts, sheets=None):
+def _cata_shade(
+    origin, direction, valid, seen, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts, sheets=None, drawing=None
+):
     w, hit, xy, x = _wall_hit(origin, direction, walls_R, walls_t)
-    d2 = jnp.min(jnp.sum((dots[w] - xy) ** 2, axis=1))
-    albedo = jnp.where(d2 < opts[0] ** 2, DOT, WALL)
+    if drawing is None:  # the walls' dots
+        d2 = jnp.min(jnp.sum((dots[w] - xy) ** 2, axis=1))
+        albedo = jnp.where(d2 < opts[0] ** 2, DOT, WALL)
+    else:  # the walls' printed targets (:mod:`slcvjax.images.render_coded`)
+        albedo = drawing_albedo(w, xy, drawing)
     s2 = jnp.min(jnp.where(spot_on & (spot_wall == w), jnp.sum((spots - x) ** 2, axis=1), jnp.inf))
     laser = jnp.exp(-0.5 * jnp.minimum(s2, 1e6) / opts[1] ** 2)  # spots lie far apart: the nearest one
     seen = seen & hit
@@ -226,8 +232,10 @@ def _cata_rays(cam, mirror, samples, body):
 
 
 @jax.jit
-def _cata_band(rays, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts, sheets=None):
-    f = lambda o, d, v, s: _cata_shade(o, d, v, s, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts, sheets)  # noqa: E731
+def _cata_band(rays, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts, sheets=None, drawing=None):
+    f = lambda o, d, v, s: _cata_shade(
+        o, d, v, s, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts, sheets, drawing
+    )  # noqa: E731
     return jax.lax.map(lambda r: jax.vmap(f)(*r), rays)
 
 
@@ -256,9 +264,11 @@ def _fine_rays(cam, mirror, body, centres, offsets):
 
 
 @jax.jit
-def _cata_shade_rays(rays, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts, sheets=None):
+def _cata_shade_rays(rays, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts, sheets=None, drawing=None):
     """Each cell's mean radiance in the box from its samples' reflected rays (:func:`_fine_rays`)."""
-    f = lambda o, d, v, s: _cata_shade(o, d, v, s, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts, sheets)  # noqa: E731
+    f = lambda o, d, v, s: _cata_shade(
+        o, d, v, s, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts, sheets, drawing
+    )  # noqa: E731
     return jax.vmap(jax.vmap(f))(*rays).mean(axis=1)
 
 
@@ -442,6 +452,7 @@ class Renderer:
         seed: int = 0,
         sheets=None,
         fans: dict | None = None,
+        drawings: dict | None = None,
     ) -> np.ndarray:
         """One catadioptric image (BGR uint8, ``height x width``).
 
@@ -455,6 +466,9 @@ class Renderer:
                 without the argument, bit for bit).
             fans: per sheet (its index among ``sheets``) the fan's camera-frame azimuth limits
                 (deg, from, to) of its emission directions; a sheet not listed shines all round.
+            drawings: each wall's print (:class:`slcvjax.images.printable.Drawing`, board frame;
+                a wall not listed is plain paper) shaded in place of ``boards``' dots
+                (:mod:`slcvjax.images.render_coded`), or None: the dots.
         """
         if self._rays is None:
             raise ValueError("this renderer has no mirror; it renders direct views only")
@@ -478,8 +492,9 @@ class Renderer:
                  jnp.asarray(spot_wall >= 0), opts)  # fmt: skip
         if sheets is not None and sheets.n:
             scene = (*scene, self._sheet_args(sheets, fans))
-        out = self._unpack(_cata_band(self._seen_rays, *scene))
-        shade = lambda rays: _cata_shade_rays(rays, *scene)  # noqa: E731
+        kw = {} if drawings is None else {"drawing": pack_drawings([drawings.get(b) for b in names])}
+        out = self._unpack(_cata_band(self._seen_rays, *scene, **kw))
+        shade = lambda rays: _cata_shade_rays(rays, *scene, **kw)  # noqa: E731
         return _finish(self._cells(out, self._traced(shade), shade), o, seed)
 
     def _sheet_args(self, sheets, fans: dict | None) -> tuple:
@@ -555,7 +570,7 @@ def scene_setup(scene, image_names: list[str], chess_names: list[str]):
     boards = {}
     for name, pts in scene.boards.items():
         cols, rows = grid_shape(pts)
-        layout = BoardLayout(np.asarray(pts, float), cols, rows)
+        layout = BoardLayout(np.asarray(pts, float), cols, rows, target=scene.board_types.get(name))
         if name != scene.chess_board and len(scene.box_poses):
             uv, ok = project_board_points(rig, scene.box_poses[0][name], jnp.asarray(pts))
             uv, ok = np.asarray(uv), np.asarray(ok)
@@ -625,6 +640,18 @@ def scene_sheets(scene) -> tuple:
     return rig.sheets, fans
 
 
+def _coded_drawings(scene) -> dict | None:
+    """Each wall's print where the scene has coded walls (``scene.board_types``), dot walls drawn as
+    discs of their points; None for a scene of dot walls (rendered from the dots, as before)."""
+    types = getattr(scene, "board_types", {})
+    if not types:
+        return None
+    from .printable import board_drawing
+
+    walls = [b for b in scene.boards if b != scene.chess_board]
+    return {b: board_drawing(types.get(b), scene.boards[b]) for b in walls}
+
+
 def _cone_only(mirror) -> None:
     if not isinstance(mirror, ConeMirror):
         raise ValueError(f"rendering supports the cone mirror only, not a {type(mirror).__name__}")
@@ -654,6 +681,7 @@ def render_scene(scene, out_dir, opts: RenderOptions = RenderOptions(), progress
     square = float(scene.boards[scene.chess_board][1, 0] - scene.boards[scene.chess_board][0, 0])
     names, chess_names = [], []
     sheet_light = scene_sheets(scene)
+    drawings = _coded_drawings(scene)
     jobs = [("view", i) for i in range(len(scene.box_poses))] + [("chess", j) for j in range(len(scene.chess_poses))]
     if progress:
         from tqdm import tqdm
@@ -663,7 +691,7 @@ def render_scene(scene, out_dir, opts: RenderOptions = RenderOptions(), progress
         if kind == "view":
             spots = [(w, x) for _, w, x, _ in visible_spots(scene, i)]
             walls_i = {b: scene.box_poses[i][b] for b in walls}
-            img = renderer.catadioptric(walls_i, scene.boards, spots, opts.seed + i, *sheet_light)
+            img = renderer.catadioptric(walls_i, scene.boards, spots, opts.seed + i, *sheet_light, drawings=drawings)
             name = f"view{i:02d}.png"
             names.append(name)
         else:
@@ -675,7 +703,7 @@ def render_scene(scene, out_dir, opts: RenderOptions = RenderOptions(), progress
     setup = scene_setup(scene, names, chess_names)
     # what a user knows of the printed targets and the lasers
     for b in setup.boards.values():
-        if b.azimuth_deg is not None:
+        if b.azimuth_deg is not None and b.target is None:
             b.dot_radius_mm = opts.dot_radius_mm
     setup.spot_sigma_mm = opts.spot_sigma_mm
     if rig.has_sheets:

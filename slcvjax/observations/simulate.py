@@ -71,6 +71,9 @@ class Scene:
     # absent: all round)
     stripe_step_deg: float = 0.5
     fans: dict = field(default_factory=dict)
+    # each coded wall's type and fields (a ChArUco or AprilGrid spec, as
+    # :func:`slcvjax.observations.targets.read_board` gives it); a board not listed is a grid of dots
+    board_types: dict = field(default_factory=dict)
 
 
 def grid_points(cols: int, rows: int, pitch: float, centred: bool = False, pitch_y: float | None = None) -> np.ndarray:
@@ -423,6 +426,7 @@ def simulate(scene: Scene, noise: "float | Sequence[float]" = 0.0, seed: int = 0
         },
         mirror_shape=None if isinstance(rig.mirror, ConeMirror) else shape_json(rig.mirror),
         laser_kinds=rig.kinds,
+        board_types={k: dict(v) for k, v in scene.board_types.items()},
     )
     truth = Calibration(
         rig=rig,
