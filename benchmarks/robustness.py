@@ -21,7 +21,9 @@ The corrupted observations are calibrated (``calibrate``) and compared with:
   direction error at the working point over the bound's standard deviation, RMS over the
   lasers and the worst laser;
 * the calibration's own claim: the worst laser's error over its reported standard deviation
-  (a confident wrong answer is a large ratio; an undetermined laser is counted apart);
+  (a confident wrong answer is a large ratio; an undetermined laser is counted apart), before
+  and after the final consistency check scales the std of the lasers it flags
+  (``worst_laser_over_checked_std``), and how many runs the check raised an alarm in;
 * the observations it flags, against the corrupted ones: those it relabelled or left out
   (``CalibrationResult.repairs``) and the report's outliers (residual above 5 sigma), each
   named by view, kind and index: precision and recall.
@@ -181,12 +183,16 @@ def one(n_lasers: int, n_views: int, mode: str, share: float, seed: int, noise: 
     x_ref = laser_working_points(res.rig, res.params.poses, res.packed)
     sd_p, sd_a = laser_std(res.rig, np.asarray(res.cov.glob), x_ref)
     determined = np.isfinite(sd_p) & np.isfinite(sd_a)
-    rep = report(res, obs)["residuals"]
+    full = report(res, obs)
+    rep, unc = full["residuals"], full["uncertainty"]
+    # the final check's std factors (1 where it passed): the std the report gives
+    factor = np.array([x.get("std_scale", 1.0) for x in unc["lasers"]])[: len(sd_p)]
     flagged = {key(o) for o in rep["outliers"]} | {
         (r.kind, r.view, r.board if r.kind == "dot" else None, r.index) for r in res.repairs
     }
     hit = len(flagged & wrong)
     claim = np.maximum(pos / sd_p, ang / sd_a)[determined]
+    claim_scaled = (np.maximum(pos / sd_p, ang / sd_a) / factor)[determined]
     return base | {
         "seconds": seconds,
         "final_pass": res.passes[-1].result,
@@ -194,6 +200,8 @@ def one(n_lasers: int, n_views: int, mode: str, share: float, seed: int, noise: 
         "direction_over_bound_rms": float(np.sqrt(np.mean(a_ratio**2))),
         "worst_laser_over_bound": float(max(p_ratio.max(), a_ratio.max())),
         "worst_laser_over_reported_std": float(claim.max()) if claim.size else None,
+        "worst_laser_over_checked_std": float(claim_scaled.max()) if claim_scaled.size else None,
+        "check_failed": [f["group"] for f in unc["consistency"]["failed"]],
         "undetermined_lasers": np.flatnonzero(~determined).tolist(),
         "flagged": len(flagged),
         "relabelled": sum(r.action == "relabelled" for r in res.repairs),
@@ -261,6 +269,15 @@ def main() -> None:
                     "direction_over_bound": rms("direction_over_bound_rms"),
                     "worst_laser_over_bound": max((r["worst_laser_over_bound"] for r in ok), default=None),
                     "worst_laser_over_reported_std": max(claims, default=None),
+                    "worst_laser_over_checked_std": max(
+                        (
+                            r["worst_laser_over_checked_std"]
+                            for r in ok
+                            if r["worst_laser_over_checked_std"] is not None
+                        ),
+                        default=None,
+                    ),
+                    "check_alarms": sum(bool(r["check_failed"]) for r in ok),
                     "undetermined_lasers": sum(len(r["undetermined_lasers"]) for r in ok),
                     "flagged_mean": mean("flagged"),
                     "boards_left_out": sum(r["boards_left_out"] for r in ok),
@@ -273,13 +290,15 @@ def main() -> None:
         return "-" if x is None else f"{x:.{nd}f}"
 
     print(
-        "rig              kind   share  pos/bound dir/bound  worst/bound  worst/std  flagged precision recall refused"
+        "rig              kind   share  pos/bound dir/bound  worst/bound  worst/std  checked  alarms  flagged "
+        "precision recall refused"
     )
     for s in summary:
         print(
             f"{s['rig']:16s} {s['mode']:6s} {s['share']:5.0%} {f(s['position_over_bound']):>9s} "
             f"{f(s['direction_over_bound']):>9s} {f(s['worst_laser_over_bound'], 1):>11s} "
-            f"{f(s['worst_laser_over_reported_std'], 1):>10s} {f(s['flagged_mean'], 1):>7s} "
+            f"{f(s['worst_laser_over_reported_std'], 1):>10s} {f(s['worst_laser_over_checked_std'], 1):>8s} "
+            f"{s['check_alarms']:7d} {f(s['flagged_mean'], 1):>7s} "
             f"{f(s['flag_precision']):>9s} {f(s['flag_recall']):>6s} {s['boards_left_out']:10d} {s['refused']:7d}"
         )
     if args.out:

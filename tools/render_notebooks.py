@@ -26,7 +26,8 @@ SOURCE, TARGET = ROOT / "notebooks", ROOT / "docs" / "notebooks"
 def render(path: Path) -> Path:
     """Execute ``path`` (a notebook of ``notebooks/``) and write it, outputs included, to ``docs/notebooks/``."""
     nb = nbformat.read(path, as_version=4)
-    os.environ.update(SLCV_NOTEBOOK_SMALL="1", MPLBACKEND="Agg")
+    os.environ["SLCV_NOTEBOOK_SMALL"] = "1"
+    os.environ.pop("MPLBACKEND", None)  # the kernel's inline backend: figures become outputs
     with tempfile.TemporaryDirectory() as tmp:
         NotebookClient(nb, timeout=1200, kernel_name="python3", resources={"metadata": {"path": tmp}}).execute()
     errors = [o for c in nb.cells if c.cell_type == "code" for o in c.outputs if o.output_type == "error"]

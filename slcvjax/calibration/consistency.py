@@ -6,19 +6,26 @@ sigma ``sigma_k`` (:func:`slcvjax.calibration.covariance.kind_noise`).  A laser 
 spots, a board placed one row off, or a model that does not fit leaves residuals that are larger,
 or shaped otherwise, than that; its reported std is then too small.  After the last pass this
 module tests, at a family-wise false-alarm level ``alpha`` (``CalibrationOptions.consistency_level``,
-default 0.01) split over the tests by Bonferroni:
+default 0.01) split by Bonferroni evenly over the families of tests (the lasers, the boards, the
+direct views, the rims, the kinds' shapes), then evenly over each family's tests, so that a
+rig's few lasers are not drowned by its many boards:
 
-- **each group's spread**: per laser (its spots or stripe samples), per board in a view (its dots),
-  per direct view (its corners) and per view's rim, ``T = sum r^2 / sigma_k^2`` over its scalar
-  rows against its expectation ``nu = sum (1 - h)``, ``h`` each row's leverage (the diagonal of
-  ``J H^-1 J^T`` at the solution: what the fit itself absorbs).  Under the model ``T`` is close to
-  ``chi^2(nu)``; the group fails where ``P(chi^2(nu) >= T)`` is below its share of ``alpha``;
+- **each group's spread against the rest of its kind**: per laser (its spots or stripe samples),
+  per board in a view (its dots), per direct view (its corners) and per view's rim, the group's
+  sum of squared residuals ``S_g`` over the degrees of freedom its rows leave,
+  ``nu_g = sum (1 - h)`` (``h`` each row's leverage: the diagonal of ``W J H^-1 J^T`` at the
+  solution, what the fit itself absorbs), over the same for the rest of the kind.  Under the
+  model the two are independent ``sigma_k^2 chi^2 / nu`` and their ratio ``F(nu_g, nu_rest)``;
+  the group fails where ``P(F >= f)`` is below its share of ``alpha``.  Comparing with the rest
+  of the kind, not with ``sigma_k`` (estimated from every group, the bad one included), keeps one
+  bad laser among few from hiding by inflating its kind's sigma;
 - **each kind's shape**: the kind's rows, each divided by ``sigma_k sqrt(1 - h)``, against the
   normal distribution by D'Agostino and Pearson's test of skew and kurtosis (``scipy.stats.normaltest``).
 
 Rows already reported as outliers (beyond ``RobustPolicy.outlier_sigmas``) and the observations the
 model cannot predict are left out: they are listed in the report.  A laser whose group fails has
-its std scaled by ``sqrt(T / nu)`` (never down), and the report says so.  The rate at which clean
+its std scaled by ``sqrt(S_g / (nu_g sigma_k^2))`` (its spread against the noise the covariance
+assumed; never down), and the report says so.  The rate at which clean
 data raise an alarm is measured by ``benchmarks/consistency.py``.
 """
 
@@ -28,17 +35,20 @@ from scipy import stats
 from ..observations.problem import KIND_NAMES, Kind, Layout
 from ..support.persist import PersistentJit
 from .evaluate import solve_compiled
-from .linearise import rows_at
+from .linearise import n_observations, rows_at
+from .losses import loss_index, robust_weights
 from .params import pad_problem
 from .result import CalibrationResult
 from .schur import schur_inverse
 
 
-def row_leverages(params, pk, masks, normal):
+def row_leverages(params, pk, masks, normal, loss, scale):
     """Per scalar residual row of the padded problem ``pk`` at ``params``: its value ``r``, its
     observation id, kind, whether it counts (a real, valid row), and its leverage ``h`` (the
-    diagonal of ``J H^-1 J^T``, ``H`` the normal matrix ``normal`` of the solution, frozen
-    columns and blocks left out by ``masks``).
+    diagonal of ``W J H^-1 J^T``, ``H = J^T W J`` the normal matrix ``normal`` of the solution,
+    ``W`` the robust loss's weights (``loss`` an index of :data:`slcvjax.calibration.losses.LOSSES`,
+    ``scale`` px), frozen columns and blocks left out by ``masks``); the leverages add up to the
+    number of estimated parameters.
 
     With ``H`` in Schur form (``S`` the global block's Schur complement, ``D`` the pose blocks,
     ``B`` their coupling), a row's ``(j_g, j_p)`` on pose block ``b`` has
@@ -47,6 +57,7 @@ def row_leverages(params, pk, masks, normal):
     import jax.numpy as jnp
 
     rows = rows_at(params, pk, with_jac=True)
+    w, _ = robust_weights(rows, n_observations(pk), loss, scale)
     s_inv, d_inv, dinv_bt = schur_inverse(normal)
     g = s_inv.shape[0]
     jg = rows.jg * jnp.concatenate([masks.glob, jnp.zeros(1)])[rows.gidx]
@@ -55,7 +66,7 @@ def row_leverages(params, pk, masks, normal):
     coupling = jnp.concatenate([dinv_bt, jnp.zeros((1, 6, g))])[rows.pidx]
     u = dense - jnp.einsum("nkg,nk->ng", coupling, jp)
     d_ext = jnp.concatenate([d_inv, jnp.zeros((1, 6, 6))])[rows.pidx]
-    h = jnp.einsum("ng,gh,nh->n", u, s_inv, u) + jnp.einsum("nk,nkl,nl->n", jp, d_ext, jp)
+    h = w * (jnp.einsum("ng,gh,nh->n", u, s_inv, u) + jnp.einsum("nk,nkl,nl->n", jp, d_ext, jp))
     return rows.r, rows.obs, rows.kind, rows.present & rows.valid, h
 
 
@@ -69,7 +80,9 @@ def per_observation_rows(result: CalibrationResult) -> tuple[np.ndarray, np.ndar
     params, pk, masks = result.params, result.packed, result.masks
     layout, p, padded, m = pad_problem(params, pk, masks)
     lin = solve_compiled(p, padded, m, result.loss, result.scale, 0).linearisation
-    r, obs, kind, use, h = (np.asarray(a) for a in _leverage_jit(p, padded, m, lin.normal))
+    loss = np.asarray(loss_index(result.loss))
+    out = _leverage_jit(p, padded, m, lin.normal, loss, np.asarray(float(result.scale)))
+    r, obs, kind, use, h = (np.asarray(a) for a in out)
     free = np.clip(1.0 - h, 0.0, 1.0)
     n_pad = int(sum(layout.cap[:4])) + (layout.stripes[1] if layout.stripes is not None else 0)
     sq = np.bincount(obs[use], weights=r[use] ** 2, minlength=n_pad)
@@ -81,6 +94,9 @@ def per_observation_rows(result: CalibrationResult) -> tuple[np.ndarray, np.ndar
     )
 
 
+MIN_REST_DOF = 5.0  # a group is compared with the rest of its kind only where the rest leaves this many
+
+
 def _kind_sigma(result: CalibrationResult, k: Kind) -> float:
     s = result.kind_sigma.get(k.label)
     return float(s) if s is not None and np.isfinite(s) else float(result.cov.sigma)
@@ -90,31 +106,31 @@ def final_check(result: CalibrationResult, table, outlier: np.ndarray, level: fl
     """The final check of ``result`` (the module's docstring): ``table`` is the report's
     per-observation table ``(norm, kind, ok, view, board, laser, index)`` and ``outlier`` its
     flags.  Returns ``{"level", "tests", "failed": [...], "laser_scale": {laser: factor}}``: each
-    failed test's group, its ``T / nu`` ratio, ``nu``, p-value, and for a group's spread the std
-    factor ``sqrt(T / nu)``."""
+    failed test's group and p-value, and for a group's spread its variance ratio to the rest of
+    its kind (``ratio``), the two degrees of freedom (``dof``) and the std factor."""
     level = result.options.consistency_level if level is None else level
     norm, kind, ok, view, board, laser, _ = table
     sq, dof, (row_obs, row_kind, row_r, row_free, layout, n_pad) = per_observation_rows(result)
     keep = ok & ~outlier
-    sigma2 = np.array([_kind_sigma(result, k) ** 2 if k in kinds_present(kind) else 1.0 for k in Kind])
-    z2 = np.where(keep, sq / sigma2[kind], 0.0)
-    groups: dict[str, np.ndarray] = {}
-    structured = (kind == Kind.SPOT) | (kind == Kind.STRIPE)
-    for i in sorted({int(x) for x in laser[keep & structured]}):
-        groups[f"laser {i}"] = keep & structured & (laser == i)
+    groups: dict[str, tuple[Kind, np.ndarray]] = {}
+    for k in (Kind.SPOT, Kind.STRIPE):
+        for i in sorted({int(x) for x in laser[keep & (kind == k)]}):
+            groups[f"laser {i}"] = (k, keep & (kind == k) & (laser == i))
     dots = keep & (kind == Kind.DOT)
     for v, b in sorted({(int(v), str(b)) for v, b in zip(view[dots], board[dots], strict=True)}):
-        groups[f"view {v} board {b}"] = dots & (view == v) & (board == b)
-    for v in sorted({int(x) for x in view[keep & (kind == Kind.CHESS)]}):
-        groups[f"direct view {v}"] = keep & (kind == Kind.CHESS) & (view == v)
-    for v in sorted({int(x) for x in view[keep & (kind == Kind.RIM)]}):
-        groups[f"view {v} rim"] = keep & (kind == Kind.RIM) & (view == v)
+        groups[f"view {v} board {b}"] = (Kind.DOT, dots & (view == v) & (board == b))
+    for k, what in ((Kind.CHESS, "direct view {}"), (Kind.RIM, "view {} rim")):
+        for v in sorted({int(x) for x in view[keep & (kind == k)]}):
+            groups[what.format(v)] = (k, keep & (kind == k) & (view == v))
+    total = {k: (float(sq[keep & (kind == k)].sum()), float(dof[keep & (kind == k)].sum())) for k in Kind}
     spread = {}
-    for name, sel in groups.items():
-        nu = float(dof[sel].sum())
-        if nu >= 1.0:
-            t = float(z2[sel].sum())
-            spread[name] = (t, nu, float(stats.chi2.sf(t, nu)))
+    for name, (k, sel) in groups.items():
+        s_g, nu_g = float(sq[sel].sum()), float(dof[sel].sum())
+        s_rest, nu_rest = total[k][0] - s_g, total[k][1] - nu_g
+        if nu_g >= 1.0 and nu_rest >= MIN_REST_DOF and s_rest > 0.0:
+            f = (s_g / nu_g) / (s_rest / nu_rest)
+            ratio = s_g / nu_g / _kind_sigma(result, k) ** 2  # against the noise the std assume
+            spread[name] = (f, nu_g, nu_rest, float(stats.f.sf(f, nu_g, nu_rest)), ratio)
     # the kinds' shape, per row: the rows of the kept observations
     kept_obs = np.zeros(n_pad, bool)
     kept_obs[_padded_ids(layout, n_pad)[keep]] = True
@@ -125,20 +141,41 @@ def final_check(result: CalibrationResult, table, outlier: np.ndarray, level: fl
             z = row_r[sel] / (np.sqrt(_kind_sigma(result, k) ** 2 * row_free[sel]))
             shape[KIND_NAMES[k]] = float(stats.normaltest(z).pvalue)
     n_tests = len(spread) + len(shape)
-    cut = level / max(n_tests, 1)
+    families = {_family(name) for name in spread} | ({"kinds"} if shape else set())
+    size = {fam: sum(_family(name) == fam for name in spread) for fam in families} | {"kinds": len(shape)}
+
+    def cut(fam: str) -> float:  # alpha split evenly over the families, then over each family's tests
+        return level / len(families) / max(size[fam], 1)
+
     failed, scale = [], {}
-    for name, (t, nu, p) in spread.items():
-        if p < cut:
-            factor = float(np.sqrt(t / nu))
+    for name, (f, nu, nu_rest, p, ratio) in spread.items():
+        if p < cut(_family(name)):
+            factor = float(np.sqrt(max(ratio, 1.0)))
             failed.append(
-                {"test": "spread", "group": name, "ratio": t / nu, "dof": nu, "p_value": p, "std_factor": factor}
+                {
+                    "test": "spread",
+                    "group": name,
+                    "ratio": f,
+                    "dof": [nu, nu_rest],
+                    "p_value": p,
+                    "std_factor": factor,
+                }
             )
             if name.startswith("laser "):
-                scale[int(name.split()[1])] = max(factor, 1.0)
+                scale[int(name.split()[1])] = factor
     for name, p in shape.items():
-        if p < cut:
+        if p < cut("kinds"):
             failed.append({"test": "normality", "group": f"kind {name}", "p_value": p})
     return {"level": level, "tests": n_tests, "failed": failed, "laser_scale": scale}
+
+
+def _family(name: str) -> str:
+    """The family of a group's test: lasers, boards, direct views or rims."""
+    if name.startswith("laser "):
+        return "lasers"
+    if name.startswith("direct view "):
+        return "direct views"
+    return "rims" if name.endswith(" rim") else "boards"
 
 
 def kinds_present(kind: np.ndarray) -> list[Kind]:

@@ -190,7 +190,7 @@ def report(result: CalibrationResult, obs: Observations | None = None) -> dict:
 def _check_status(check: dict) -> str:
     """``uncertainty.status``'s line for a failed final check."""
     names = ", ".join(
-        f"{f['group']} ({f['ratio']:.2f}x its expected spread)"
+        f"{f['group']} ({f['ratio']:.2f}x the variance of the rest of its kind)"
         if f["test"] == "spread"
         else f"{f['group']} (not normal)"
         for f in check["failed"][:6]
