@@ -551,6 +551,9 @@ def stop_on_signals(command: str):
             sys.stdout.flush()
             print(f"slcvjax {command}: stopped by signal {signum}; no output was left half written", file=sys.stderr)
             sys.stderr.flush()
+            study = sys.modules.get("slcvjax.experiments.cluster")
+            if study is not None:  # a local Ray cluster it started goes with it
+                study.shutdown_started()
         finally:
             os._exit(128 + signum)
 

@@ -162,7 +162,30 @@ def connect(spec: ClusterSpec, cache_dir: str | os.PathLike | None = None) -> tu
                     ray.init(**quiet, **kw)
         except (ConnectionError, RuntimeError, ValueError) as e:
             raise StudyError(f"--cluster {spec}: cannot reach the Ray cluster: {str(e).splitlines()[0]}") from None
+    global _STARTED
+    _STARTED = True
     return ray, True
+
+
+_STARTED = False  # whether this process started the Ray instance it is connected to (connect)
+
+
+def shutdown_started(timeout_s: float = 10.0) -> None:
+    """Shut down the Ray instance this process started, if any: what a command stopped by a signal
+    does before it exits (a local cluster's agent processes would outlive an abrupt exit).  Runs in
+    a thread and waits for it at most ``timeout_s`` seconds (a signal may have come in the middle
+    of a Ray call)."""
+    global _STARTED
+    if not _STARTED:
+        return
+    _STARTED = False
+    import threading
+
+    import ray
+
+    t = threading.Thread(target=ray.shutdown, daemon=True)
+    t.start()
+    t.join(timeout_s)
 
 
 def _chunk_task(task: Callable, payload: Any, items: list, index: int) -> list:
@@ -451,4 +474,4 @@ def _run_on_ray(task, payload, items, bounds, todo, cluster, cache_dir, finished
         _log.debug(f"cluster: {len(todo)} chunks in {time.perf_counter() - t0:.1f} s")
     finally:
         if started:
-            ray.shutdown()
+            shutdown_started()
