@@ -255,8 +255,13 @@ def _describe(settings: dict) -> dict:
 
 
 def _differences(old: dict, new: dict) -> str:
+    """``trials 8 there, 16 now, ...``: the settings that differ (a hashed one by its hash's start)."""
+
+    def show(v):
+        return f"#{v['sha256'][:10]}" if isinstance(v, dict) and list(v) == ["sha256"] else json.dumps(v)
+
     keys = [k for k in dict.fromkeys([*old, *new]) if old.get(k) != new.get(k)]
-    return ", ".join(f"{k} {json.dumps(old.get(k))} there, {json.dumps(new.get(k))} now" for k in keys[:4])
+    return ", ".join(f"{k} {show(old.get(k))} there, {show(new.get(k))} now" for k in keys[:4])
 
 
 def _chunk_path(folder: Path, index: int) -> Path:
