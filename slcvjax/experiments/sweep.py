@@ -14,7 +14,9 @@ the same observation shapes, so the whole sweep shares one compilation.  The tri
 are calibrated by :func:`calibrate_many`: on a CPU in a loop, two at a time in threads
 (a ``vmap`` batch waits for its slowest trial: ``benchmarks/bench_sweep.py`` measured
 the loop 1.8x faster), on an accelerator all of them in lockstep, each LM pass one
-``vmap``-ped solve with the trial axis sharded over the devices.
+``vmap``-ped solve with the trial axis sharded over the devices.  The trials go in chunks
+(:func:`sweep_chunk`) through :func:`slcvjax.experiments.cluster.run_chunks`: here, or one Ray
+task per chunk on a cluster, each finished chunk kept in the output folder for a resume.
 """
 
 import csv
