@@ -139,3 +139,15 @@ def test_a_design_confirmation_on_the_cluster_equals_the_local_one(ray_cluster, 
     there = confirm(plan, 2, seed=4, chunk=1, cluster="auto", out_dir=tmp_path)
     assert there == here and here["trials"] == 2
     assert len(_chunk_files(tmp_path)) == 2
+
+
+def test_a_task_error_on_the_cluster_is_raised_as_the_task_raised_it(ray_cluster, tmp_path):
+    import operator
+
+    # operator.getitem({}, items): the task raises TypeError in the worker (a builtin: workers import it)
+    with pytest.raises(TypeError, match="unhashable") as info:
+        cl.run_chunks(
+            operator.getitem, {}, [1, 2, 3], study="t", settings={}, chunk_size=2, folder=tmp_path, cluster="auto"
+        )
+    assert type(info.value) is TypeError  # not Ray's wrapper, whose text carries the worker's traceback
+    assert not list((tmp_path / cl.CHUNKS).iterdir())

@@ -454,6 +454,24 @@ def run_chunks(
     return [r for k in range(len(bounds)) for r in records[k]]
 
 
+def _result(ray, ref, k: int, bounds: tuple[int, int]) -> list:
+    """Chunk ``k``'s records; the task's own exception as it was raised (not Ray's wrapper), and a
+    chunk Ray gave up on (its workers died ``MAX_RETRIES + 1`` times) as one line."""
+    try:
+        return ray.get(ref)
+    except ray.exceptions.RayTaskError as e:
+        cause = getattr(e, "cause", None)
+        if isinstance(cause, BaseException):
+            raise cause from None
+        raise
+    except ray.exceptions.RayError as e:
+        first = str(e).strip().splitlines()[0] if str(e).strip() else ""
+        raise StudyError(
+            f"chunk {k} (trials {bounds[0]} to {bounds[1] - 1}) failed on the cluster: {type(e).__name__}: {first}; "
+            "the chunks finished before are kept: run the command again to resume"
+        ) from None
+
+
 def _run_on_ray(task, payload, items, bounds, todo, cluster, cache_dir, finished) -> None:
     """Each chunk of ``todo`` one Ray task; ``finished(k, records)`` as each one ends (ray.wait)."""
     spec = parse_cluster(cluster) if isinstance(cluster, str) else cluster
@@ -471,7 +489,7 @@ def _run_on_ray(task, payload, items, bounds, todo, cluster, cache_dir, finished
                 ready, _ = ray.wait(list(pending), num_returns=1)
                 for r in ready:
                     k = pending.pop(r)
-                    finished(k, ray.get(r))
+                    finished(k, _result(ray, r, k, bounds[k]))
         except BaseException:
             for r in pending:
                 ray.cancel(r, force=True)
