@@ -57,6 +57,35 @@ def _board_flags(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--square", type=float, required=True, help="the chessboard's square size in mm")
 
 
+def _study_flags(parser: argparse.ArgumentParser, what: str) -> None:
+    """A study's ``--cluster``, ``--cluster-cache``, ``--chunk``, ``--resume`` and ``--restart``
+    (``slcvjax.experiments.cluster``), the same wherever trials are simulated and calibrated."""
+    parser.add_argument(
+        "--cluster",
+        metavar="auto|local:N|ray://HOST:PORT",
+        help=f"run the {what} on a Ray cluster, one task per chunk of trials: auto (a running cluster, "
+        "else a local one), local:N (N worker processes here) or a cluster's client address; the same "
+        "numbers as without it (needs pip install 'slcvjax[cluster]')",
+    )
+    parser.add_argument(
+        "--cluster-cache",
+        metavar="DIR",
+        help="a folder every worker reaches (a shared file system) for the compilation cache, so the "
+        "cluster compiles each program once (default: a local cluster uses this machine's cache)",
+    )
+    parser.add_argument(
+        "--chunk", type=int, metavar="N", help="trials per chunk (default 8; 256 in lockstep on an accelerator)"
+    )
+    again = parser.add_mutually_exclusive_group()
+    again.add_argument(
+        "--resume",
+        action="store_true",
+        help="resume the run in --out (an error if it holds none); without it a run of the same "
+        "settings there is resumed too, and a run of other settings refused",
+    )
+    again.add_argument("--restart", action="store_true", help="discard the run in --out and start again")
+
+
 def _export_opencv_flag(parser: argparse.ArgumentParser) -> None:
     """``--export-opencv``, wherever a camera is calibrated (``calibrate``, ``camera``, ``omni``)."""
     parser.add_argument(
@@ -287,7 +316,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="trials one after another (loop) or in lockstep, vmap-ped and sharded over the devices "
         "(default auto: loop on a CPU, vmap on an accelerator)",
     )
-    w.add_argument("--out", default="slcvjax-sweep", help="output directory (default ./slcvjax-sweep)")
+    w.add_argument(
+        "--out", default="slcvjax-sweep", help="output directory, also of each finished chunk (default ./slcvjax-sweep)"
+    )
+    _study_flags(w, "trials")
     w.set_defaults(func=_command("sweep"))
 
     g = _add(sub, "design", help="plan a calibration: predict the lasers' accuracy and optimise the sensor poses")
@@ -322,6 +354,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--confirm", type=int, default=0, help="simulate and calibrate each plan N times")
     g.add_argument("--seed", type=int, default=0, help="first seed of the confirmation")
     g.add_argument("--out", default="slcvjax-design", help="output directory (default ./slcvjax-design)")
+    _study_flags(g, "--confirm calibrations")
     g.set_defaults(func=_command("design"))
 
     q = _add(sub, "pipe", help="the paper's pipe experiment on the simulated rig")
@@ -518,6 +551,9 @@ def stop_on_signals(command: str):
             sys.stdout.flush()
             print(f"slcvjax {command}: stopped by signal {signum}; no output was left half written", file=sys.stderr)
             sys.stderr.flush()
+            study = sys.modules.get("slcvjax.experiments.cluster")
+            if study is not None:  # a local Ray cluster it started goes with it
+                study.shutdown_started()
         finally:
             os._exit(128 + signum)
 

@@ -256,3 +256,22 @@ class progress_lines:
     def __exit__(self, *exc):
         self._logger.setLevel(self._level)
         return False
+
+
+def study_options(args) -> dict:
+    """A study command's ``--cluster``, ``--cluster-cache``, ``--chunk``, ``--resume`` and
+    ``--restart`` as ``run_sweep``'s keywords (``cluster``, ``cache_dir``, ``chunk``, ``resume``).
+    Checked before any work: a bad ``--cluster``, or one without Ray installed, raises
+    :class:`slcvjax.experiments.cluster.StudyError` (one line, exit 2)."""
+    from ..experiments.cluster import parse_cluster, require_ray
+
+    cluster = None
+    if args.cluster is not None:
+        cluster = parse_cluster(args.cluster)
+        require_ray()
+    elif args.cluster_cache is not None:
+        raise ValueError("--cluster-cache: only with --cluster")
+    if args.chunk is not None and args.chunk < 1:
+        raise ValueError(f"--chunk: expected at least 1 trial, got {args.chunk}")
+    resume = "require" if args.resume else "restart" if args.restart else "auto"
+    return {"cluster": cluster, "cache_dir": args.cluster_cache, "chunk": args.chunk, "resume": resume}

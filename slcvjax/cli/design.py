@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import fmt, fmt_finite
+from .common import fmt, fmt_finite, study_options
 
 log = logging.getLogger(__name__)
 
@@ -39,7 +39,10 @@ def run(args) -> int:
     start = base * np.where(preset.scale > 0, np.concatenate([rot, tra]) / preset.scale, 0.0)
     scene = box_scene(rig, start, args.box / 2.0)
     plan = Plan.from_scene(scene, start, noise=args.noise, rotation_range=rot, translation_range=tra)
+    study = study_options(args)
     if args.measure:
+        if args.cluster is not None or args.resume or args.chunk is not None:
+            raise ValueError("--cluster, --chunk and --resume: not with --measure yet (its confirmation runs here)")
         return _design_lasers(args, plan)
     log.info(
         f"design: {args.views} views in a {args.box:g} mm box, motion +-{np.degrees(rot).round(2).tolist()} deg, "
@@ -59,10 +62,15 @@ def run(args) -> int:
     )
     confirmed = None
     if args.confirm:
-        log.info(f"confirming by simulation: {args.confirm} calibrations of each plan (each compiles once)")
+        where = f" on the Ray cluster {study['cluster']}" if study["cluster"] else ""
+        log.info(
+            f"confirming by simulation: {args.confirm} calibrations of each plan{where} (each compiles once); "
+            f"each finished chunk is kept in {Path(args.out) / 'confirm-before'} and confirm-after"
+        )
         confirmed = {}
         for name, p in (("before", res.before), ("after", res.after)):
-            confirmed[name] = confirm(p, args.confirm, args.seed, progress=sys.stderr.isatty())
+            folder = Path(args.out) / f"confirm-{name}"
+            confirmed[name] = confirm(p, args.confirm, args.seed, progress=sys.stderr.isatty(), out_dir=folder, **study)
             c = confirmed[name]
             log.info(
                 f"  {name:6s} simulated rms: position {fmt(c['position_rms_mm'], 4)} mm, direction "

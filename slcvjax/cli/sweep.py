@@ -18,19 +18,27 @@ def run(args) -> int:
 
     from ..calibration.executors import resolve_batch
     from ..experiments.sweep import run_sweep, write_sweep
+    from .common import study_options
 
     levels = _parse_levels(args.noise)
     batch = resolve_batch(args.batch)
+    study = study_options(args)
 
     log.info(
         f"sweep: preset {args.preset}, noise {list(levels)} px, {args.trials} trials per level, "
-        f"{args.lasers} lasers, {args.views} views; {batch} over the trials on {len(jax.devices())} "
-        f"{jax.default_backend()} device(s) (with an empty compilation cache the first calibrations "
-        "wait for it: 15 s on 2 CPU cores)",
+        f"{args.lasers} lasers, {args.views} views; {batch} over the trials on "
+        + (
+            f"the Ray cluster {study['cluster']}"
+            if study["cluster"]
+            else f"{len(jax.devices())} {jax.default_backend()} device(s)"
+        )
+        + " (with an empty compilation cache the first calibrations wait for it: 15 s on 2 CPU cores); "
+        f"each finished chunk of trials is kept in {args.out}",
     )
     doc = run_sweep(
-        args.preset, levels, args.trials, args.seed, args.lasers, args.views, progress=sys.stderr.isatty(), batch=batch
-    )
+        args.preset, levels, args.trials, args.seed, args.lasers, args.views, progress=sys.stderr.isatty(),
+        batch=batch, out_dir=args.out, **study,
+    )  # fmt: skip
     m = doc["methods"]
     log.info("noise px   joint pos mm  dir deg   bound pos mm  dir deg   staged pos mm  dir deg")
     for i, s in enumerate(doc["noise"]):

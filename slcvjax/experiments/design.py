@@ -457,7 +457,19 @@ def optimise(
 # ----------------------------------------------------------------------------- confirmation, output
 
 
-def confirm(plan: Plan, trials: int, seed: int = 0, progress: bool = False) -> dict:
+def confirm(
+    plan: Plan,
+    trials: int,
+    seed: int = 0,
+    progress: bool = False,
+    *,
+    out_dir=None,
+    resume: str = "auto",
+    chunk: int | None = None,
+    cluster=None,
+    cache_dir=None,
+    on_chunk=None,
+) -> dict:
     """Monte Carlo check of a plan: simulate and calibrate it ``trials`` times at its noise.
 
     Returns the RMS over trials and lasers of the joint calibration's position error at
@@ -465,55 +477,102 @@ def confirm(plan: Plan, trials: int, seed: int = 0, progress: bool = False) -> d
     calibrations converged, and how many could not be made at all (``failed``, with the
     first reason: a plan whose views leave a laser without usable spots); the RMS figures
     are None when every trial failed.
-    """
-    from ..calibration.bound import laser_errors
-    from ..observations.simulate import box_scene
 
-    scene = box_scene(plan.rig, plan.views, plan.half_width, n_chess_views=len(plan.chess_poses) or 12)
-    pos, ang, conv, failed = [], [], 0, []
-    for _, truth, res, error in simulated_calibrations(plan, trials, seed, progress):
-        if res is None:
-            failed.append(error)
-            continue
-        conv += res.passes[-1].converged
-        p, a = laser_errors(res.rig, truth.rig, _true_working_points(scene))
-        pos.append(p)
-        ang.append(a)
-    out = {"trials": trials, "converged": conv, "failed": len(failed)}
+    Trial ``t`` simulates with seed ``seed + t``.  The trials run in chunks of ``chunk`` (default 8)
+    through :func:`slcvjax.experiments.cluster.run_chunks`, here or on the Ray cluster ``cluster``
+    (``cache_dir``: the workers' shared compilation cache), with the same numbers either way; with
+    ``out_dir`` each finished chunk is kept there and a run of the same plan resumes it
+    (``resume``, ``on_chunk``: as :func:`slcvjax.experiments.sweep.run_sweep`'s).
+    """
+    from .cluster import run_chunks
+
+    if trials < 1:
+        raise ValueError(f"trials must be at least 1, got {trials}")
+    scene = _plan_scene(plan)
+    payload = {"plan": plan, "scene": scene, "x_ref": _true_working_points(scene)}
+    items = [{"trial": t, "seed": seed + t} for t in range(trials)]
+    records = run_chunks(
+        confirm_chunk, payload, items, study="design-confirm", settings={"plan": plan, "trials": trials, "seed": seed},
+        chunk_size=chunk, folder=out_dir, resume=resume, cluster=cluster, cache_dir=cache_dir, progress=progress,
+        desc="confirm", on_chunk=on_chunk,
+    )  # fmt: skip
+    failed = [r["error"] for r in records if "error" in r]
+    ok = [r for r in records if "error" not in r]
+    out = {"trials": trials, "converged": sum(r["converged"] for r in ok), "failed": len(failed)}
     if failed:
         out["first_failure"] = failed[0]
-    if not pos:
+    if not ok:
         return out | {"position_rms_mm": None, "direction_rms_deg": None}
-    pos, ang = np.concatenate(pos), np.concatenate(ang)
+    pos = np.concatenate([r["pos"] for r in ok])
+    ang = np.concatenate([r["ang"] for r in ok])
     return out | {
         "position_rms_mm": float(np.sqrt(np.mean(pos**2))),
         "direction_rms_deg": float(np.degrees(np.sqrt(np.mean(ang**2)))),
     }
 
 
+def confirm_chunk(payload: dict, items: list[dict]) -> list[dict]:
+    """Simulate and calibrate a chunk of a confirmation's trials (the task of :func:`confirm`'s
+    :func:`~slcvjax.experiments.cluster.run_chunks`).
+
+    Args:
+        payload: ``plan`` (:class:`Plan`), ``scene`` (its box scene) and ``x_ref`` (N, 3) the
+            lasers' true working points (mm).
+        items: one per trial, ``{"seed": int, ...}``.
+
+    Returns:
+        One record per trial: ``pos`` (N,) mm and ``ang`` (N,) rad, the joint calibration's
+        errors (:func:`slcvjax.calibration.bound.laser_errors`), and ``converged``; or
+        ``{"error": reason}`` where the trial could not be calibrated.
+    """
+    from ..calibration.bound import laser_errors
+
+    out = []
+    for it in items:
+        _, truth, res, error = _simulated_calibration(payload["scene"], payload["plan"].noise, it["seed"])
+        if res is None:
+            out.append({"error": error})
+            continue
+        pos, ang = laser_errors(res.rig, truth.rig, payload["x_ref"])
+        out.append({"converged": bool(res.passes[-1].converged), "pos": pos.tolist(), "ang": ang.tolist()})
+    return out
+
+
+def _plan_scene(plan: Plan) -> Scene:
+    from ..observations.simulate import box_scene
+
+    return box_scene(plan.rig, plan.views, plan.half_width, n_chess_views=len(plan.chess_poses) or 12)
+
+
+def _simulated_calibration(scene: Scene, noise: float, seed: int):
+    """``(obs, truth, result, None)`` of one simulation of ``scene`` calibrated from its usable
+    observations, or ``(obs, truth, None, reason)`` where a calibration cannot be made."""
+    from ..calibration.base import CalibrationError
+    from ..calibration.calibrate import calibrate
+    from ..calibration.result import require_determined
+    from ..observations.simulate import simulate
+
+    obs, truth = simulate(scene, noise=noise, seed=seed)
+    try:
+        return obs, truth, require_determined(calibrate(usable_observations(obs))), None
+    except CalibrationError as e:
+        return obs, truth, None, str(e)
+
+
 def simulated_calibrations(plan: Plan, trials: int, seed: int = 0, progress: bool = False):
     """``trials`` simulations of the plan's box calibration at its noise (trial ``t``: seed
     ``seed + t``), each calibrated from its usable observations: yields ``(obs, truth, result,
     None)``, or ``(obs, truth, None, reason)`` where a calibration cannot be made."""
-    from ..calibration.base import CalibrationError
-    from ..calibration.calibrate import calibrate
-    from ..calibration.result import require_determined
-    from ..observations.simulate import box_scene, simulate
-
     if trials < 1:
         raise ValueError(f"trials must be at least 1, got {trials}")
-    scene = box_scene(plan.rig, plan.views, plan.half_width, n_chess_views=len(plan.chess_poses) or 12)
+    scene = _plan_scene(plan)
     it = range(trials)
     if progress:
         from tqdm import tqdm
 
         it = tqdm(it, desc="confirm", unit="calibration")
     for t in it:
-        obs, truth = simulate(scene, noise=plan.noise, seed=seed + t)
-        try:
-            yield obs, truth, require_determined(calibrate(usable_observations(obs))), None
-        except CalibrationError as e:
-            yield obs, truth, None, str(e)
+        yield _simulated_calibration(scene, plan.noise, seed + t)
 
 
 def usable_observations(obs):

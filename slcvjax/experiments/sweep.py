@@ -14,7 +14,9 @@ the same observation shapes, so the whole sweep shares one compilation.  The tri
 are calibrated by :func:`calibrate_many`: on a CPU in a loop, two at a time in threads
 (a ``vmap`` batch waits for its slowest trial: ``benchmarks/bench_sweep.py`` measured
 the loop 1.8x faster), on an accelerator all of them in lockstep, each LM pass one
-``vmap``-ped solve with the trial axis sharded over the devices.
+``vmap``-ped solve with the trial axis sharded over the devices.  The trials go in chunks
+(:func:`sweep_chunk`) through :func:`slcvjax.experiments.cluster.run_chunks`: here, or one Ray
+task per chunk on a cluster, each finished chunk kept in the output folder for a resume.
 """
 
 import csv
@@ -35,6 +37,7 @@ from ..geometry.rig import Rig
 from ..observations.formats import write_json_atomic, write_text_atomic
 from ..observations.simulate import make_scene, simulate
 from ..support.safe import std_of_variance
+from .cluster import prepare_folder, run_chunks
 
 SWEEP_FORMAT = "slcv-sweep/1"
 COMPONENTS = ("x0", "y0", "z0", "nx", "ny", "nz")
@@ -75,6 +78,51 @@ def _summaries(comp: np.ndarray, pos: np.ndarray, ang: np.ndarray) -> dict:
     }
 
 
+def sweep_chunk(payload: dict, items: list[dict]) -> list[dict]:
+    """Simulate and calibrate a chunk of a sweep's trials (the task of :func:`run_chunks`).
+
+    Args:
+        payload: ``scene`` (the preset's :class:`Scene`), ``truth`` (its true :class:`Rig`),
+            ``x_ref`` (N, 3) the lasers' working points (mm), ``batch`` (``loop`` or ``vmap``) and
+            ``workers`` (:func:`calibrate_many`'s).
+        items: one per trial, ``{"noise": px, "seed": int, ...}``.
+
+    Returns:
+        One record per trial: ``comp_joint``/``comp_staged`` (N, 6) component errors
+        (:func:`laser_component_errors`), ``pos_*`` (N,) mm and ``ang_*`` (N,) rad
+        (:func:`laser_errors`), ``converged`` and ``seconds`` (in lockstep: the chunk's mean).
+
+    Raises:
+        CalibrationError: a trial whose lasers cannot be determined.
+    """
+    scene, truth, x_ref = payload["scene"], payload["truth"], np.asarray(payload["x_ref"])
+    observations = [simulate(scene, noise=it["noise"], seed=it["seed"])[0] for it in items]
+    t1 = time.perf_counter()
+    # on a CPU two calibrations at once overlap one's host steps with the other's solves
+    results = calibrate_many(observations, batch=payload["batch"], workers=payload["workers"])
+    per_trial = (time.perf_counter() - t1) / len(results)
+    out = []
+    for res in results:
+        require_determined(res)
+        rec = {
+            "converged": bool(res.passes[-1].converged),
+            # in lockstep (vmap) the trials share their time: the chunk's mean
+            "seconds": res.timings["total_s"] if payload["batch"] == "loop" else per_trial,
+        }
+        for m, rig in (("joint", res.rig), ("staged", res.staged.rig)):
+            rec[f"comp_{m}"] = laser_component_errors(rig, truth, x_ref).tolist()
+            pos, ang = laser_errors(rig, truth, x_ref)
+            rec[f"pos_{m}"], rec[f"ang_{m}"] = np.asarray(pos).tolist(), np.asarray(ang).tolist()
+        out.append(rec)
+    return out
+
+
+def default_chunk(batch: str) -> int:
+    """Trials per chunk by default: 8 in a loop (a few seconds each on a CPU core), 256 in lockstep
+    (``vmap``: an accelerator's batch)."""
+    return 8 if batch == "loop" else 256
+
+
 def run_sweep(
     preset: str = "paper",
     noise: tuple[float, ...] = (0.0, 0.3, 0.6, 0.9),
@@ -84,11 +132,27 @@ def run_sweep(
     n_views: int = 16,
     progress: bool = False,
     batch: str = "auto",
+    *,
+    out_dir=None,
+    resume: str = "auto",
+    chunk: int | None = None,
+    cluster=None,
+    cache_dir=None,
+    on_chunk=None,
 ) -> dict:
     """Run a sweep; returns the ``slcv-sweep/1`` document (plus per-trial details under ``trials_detail``).
 
     Trial ``t`` of level ``l`` simulates with seed ``seed + 1000 l + t``.  ``batch``:
     how the trials are calibrated (:func:`calibrate_many`: ``auto``, ``loop`` or ``vmap``).
+
+    The trials run in chunks of ``chunk`` (default :func:`default_chunk`) through
+    :func:`slcvjax.experiments.cluster.run_chunks`: here, or on the Ray cluster ``cluster``
+    (``auto``, ``local:N``, ``ray://HOST:PORT``; ``cache_dir``: the workers' shared compilation
+    cache), with the same numbers either way.  With ``out_dir`` every finished chunk is kept there
+    (``study.json``, ``chunks/``) and a run of the same settings resumes it (``resume``: ``auto``,
+    ``require`` or ``restart``; another sweep's folder raises
+    :class:`~slcvjax.experiments.cluster.StudyError`).  ``on_chunk(index, done)``: called after
+    each chunk.
     """
     noise = tuple(float(s) for s in noise)
     if not noise or any(not np.isfinite(s) or s < 0 for s in noise):
@@ -96,38 +160,52 @@ def run_sweep(
     if trials < 1:
         raise ValueError(f"trials: expected at least 1, got {trials}")
     batch = resolve_batch(batch)
+    items = [
+        {"level": li, "noise": s, "trial": t, "seed": seed + 1000 * li + t}
+        for li, s in enumerate(noise)
+        for t in range(trials)
+    ]
+    settings = {"preset": preset, "noise": list(noise), "trials": trials, "seed": seed, "lasers": n_lasers}
+    settings |= {"views": n_views, "batch": batch}
+    if out_dir is not None:  # another sweep's folder is refused before any work
+        _, chunk = prepare_folder(out_dir, "sweep", settings, len(items), chunk, resume, default_chunk(batch))
+        resume = "auto"
     t0 = time.perf_counter()  # the bound's compilation included
     scene = make_scene(preset, n_lasers=n_lasers, n_views=n_views)
     exact, truth = simulate(scene)
     unit = cramer_rao(truth, exact, 1.0)  # the bound at 1 px; it scales with the noise
-    x_ref = unit["x_ref"]
+    x_ref = np.asarray(unit["x_ref"])
     unit_comp = laser_component_std(truth.rig, np.asarray(unit["cov"].glob), x_ref)
     n = truth.rig.lasers.n
+    payload = {
+        "scene": scene,
+        "truth": truth.rig,
+        "x_ref": x_ref,
+        "batch": batch,
+        "workers": min(2, os.cpu_count() or 1),
+    }
+    records = run_chunks(
+        sweep_chunk, payload, items, study="sweep", settings=settings, chunk_size=chunk,
+        default_chunk_size=default_chunk(batch), folder=out_dir, resume=resume, cluster=cluster,
+        cache_dir=cache_dir, progress=progress, on_chunk=on_chunk,
+    )  # fmt: skip
     shape = (len(noise), trials, n)
     comp = {m: np.zeros(shape + (6,)) for m in ("staged", "joint")}
     pos = {m: np.zeros(shape) for m in ("staged", "joint")}
     ang = {m: np.zeros(shape) for m in ("staged", "joint")}
     detail = []
-    seeds = [(li, s, t, seed + 1000 * li + t) for li, s in enumerate(noise) for t in range(trials)]
-    observations = [simulate(scene, noise=s, seed=sd)[0] for _, s, _, sd in seeds]
-    t1 = time.perf_counter()
-    # on a CPU two calibrations at once overlap one's host steps with the other's solves
-    results = calibrate_many(observations, batch=batch, progress=progress, workers=min(2, os.cpu_count() or 1))
-    per_trial = (time.perf_counter() - t1) / len(results)
-    for (li, s, t, sd), res in zip(seeds, results, strict=True):
-        require_determined(res)
-        st = res.staged
-        for m, rig in (("joint", res.rig), ("staged", st.rig)):
-            comp[m][li, t] = laser_component_errors(rig, truth.rig, x_ref)
-            pos[m][li, t], ang[m][li, t] = laser_errors(rig, truth.rig, x_ref)
+    for it, rec in zip(items, records, strict=True):
+        li, t = it["level"], it["trial"]
+        for m in ("staged", "joint"):
+            comp[m][li, t] = rec[f"comp_{m}"]
+            pos[m][li, t], ang[m][li, t] = rec[f"pos_{m}"], rec[f"ang_{m}"]
         detail.append(
             {
-                "noise": s,
+                "noise": it["noise"],
                 "trial": t,
-                "seed": sd,
-                # in lockstep (vmap) the trials share their time: the batch's mean
-                "seconds": res.timings["total_s"] if batch == "loop" else per_trial,
-                "converged": res.passes[-1].converged,
+                "seed": it["seed"],
+                "seconds": rec["seconds"],
+                "converged": rec["converged"],
             }
         )
     sig = np.asarray(noise)
@@ -149,6 +227,7 @@ def run_sweep(
         "scene": {"preset": preset, "lasers": n, "views": n_views, "seed": seed},
         "batch": batch,
         "devices": [str(d) for d in jax.devices()],
+        "cluster": None if cluster is None else str(cluster),
         "converged": int(sum(d["converged"] for d in detail)),
         "seconds": time.perf_counter() - t0,
         "trials_detail": detail,
