@@ -9,9 +9,11 @@ with the default options and its report's ``uncertainty.consistency`` read: the 
 any failed test is the family-wise false-alarm rate, to compare with the level (the check's
 Bonferroni split bounds it by the level, the leverages and the robust passes aside).
 
-Power: on the 5-laser rig, one laser's spots are given ``--noisy`` times the others' noise (a
-dim, blurred spot), and the share of runs that name it is counted, with the default robust loss
-(whose passes leave that laser's worst spots out as misfits) and with plain least squares.
+Power: on the 5-laser rig at 12 views, one laser's spots are given ``--noisy`` times the others'
+noise (a dim, blurred spot), and the share of runs that name it is counted, with the default
+robust loss (whose passes leave that laser's worst spots out as misfits) and with plain least
+squares; beside it, that laser's error at its working point over its reported std, before and
+after the check scales it (a confident wrong answer is a ratio above 3).
 
 Writes JSON with the machine and versions.
 """
@@ -47,15 +49,27 @@ RIGS = {
 }
 
 
-def _check(obs, level: float, **kw) -> dict:
+def _check(obs, level: float, truth=None, **kw) -> dict:
+    """Calibrate ``obs`` and read its final check; with ``truth``, each laser's error at its
+    working point over its reported std (the check's scaled std, and the covariance's own)."""
     import slcvjax as sj
+    from slcvjax.calibration.bound import laser_std, laser_working_points
     from slcvjax.calibration.options import CalibrationOptions
 
     t0 = time.perf_counter()
     res = sj.calibrate(obs, options=CalibrationOptions(consistency_level=level), **kw)
     t1 = time.perf_counter()
     unc = sj.report(res, obs)["uncertainty"]
-    return unc["consistency"] | {"calibrate_s": t1 - t0, "report_s": time.perf_counter() - t1}
+    out = unc["consistency"] | {"calibrate_s": t1 - t0, "report_s": time.perf_counter() - t1}
+    if truth is not None:
+        x_ref = laser_working_points(res.rig, res.params.poses, res.packed)
+        pos, ang = sj.laser_errors(res.rig, truth.rig, x_ref)
+        sd_p, sd_a = laser_std(res.rig, np.asarray(res.cov.glob), x_ref)
+        scale = np.array([x.get("std_scale", 1.0) for x in unc["lasers"]])
+        own = np.maximum(pos / sd_p, ang / sd_a)
+        out["error_over_std"] = own.tolist()
+        out["error_over_checked_std"] = (own / scale).tolist()
+    return out
 
 
 def main() -> None:
@@ -98,7 +112,7 @@ def main() -> None:
     for loss in ("huber", "linear"):
         named = []
         for seed in range(args.seeds):
-            obs, _ = sj.simulate(_rig_scene(5, 12, None), noise=0.4, seed=seed)
+            obs, truth = sj.simulate(_rig_scene(5, 12, None), noise=0.4, seed=seed)
             bad = copy.deepcopy(obs)
             rng = np.random.default_rng(500 + seed)
             extra = 0.4 * np.sqrt(args.noisy**2 - 1.0)
@@ -106,14 +120,31 @@ def main() -> None:
                 for s in view.spots:
                     if s.laser == 2:
                         s.pixel = np.asarray(s.pixel) + rng.normal(0.0, extra, 2)
-            c = _check(bad, args.level, loss=loss)
+            c = _check(bad, args.level, truth, loss=loss)
             groups = [f["group"] for f in c["failed"]]
-            named.append({"seed": seed, "failed": groups, "named": "laser 2" in groups})
-            print(f"power {loss} seed {seed}: {groups}", flush=True)
+            named.append(
+                {
+                    "seed": seed,
+                    "failed": groups,
+                    "named": "laser 2" in groups,
+                    "noisy_laser_error_over_std": c["error_over_std"][2],
+                    "noisy_laser_error_over_checked_std": c["error_over_checked_std"][2],
+                }
+            )
+            print(
+                f"power {loss} seed {seed}: {groups}; laser 2 error {c['error_over_std'][2]:.2f}x its std, "
+                f"{c['error_over_checked_std'][2]:.2f}x after the check",
+                flush=True,
+            )
         out["power"][loss] = {
             "runs": named,
             "detection_rate": float(np.mean([r["named"] for r in named])),
             "others_named": int(sum(len([g for g in r["failed"] if g != "laser 2"]) for r in named)),
+            "noisy_laser_beyond_3_std": sum(r["noisy_laser_error_over_std"] > 3 for r in named),
+            "noisy_laser_beyond_3_checked_std": sum(r["noisy_laser_error_over_checked_std"] > 3 for r in named),
+            "noisy_laser_error_over_checked_std_rms": float(
+                np.sqrt(np.mean([r["noisy_laser_error_over_checked_std"] ** 2 for r in named]))
+            ),
         }
     out["machine"] = {
         "platform": platform.platform(),

@@ -4,14 +4,7 @@ from pathlib import Path
 
 import numpy as np
 
-
-def pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+from .support.mpl import pyplot
 
 
 def plot_pipe(result: dict, out_dir, axis=(0.0, 0.0, 1.0)) -> list[Path]:

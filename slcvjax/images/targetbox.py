@@ -230,12 +230,10 @@ def write_build_sheet(setup: Setup, out_dir, pages: dict, source: str = "setup.j
     """
     from pathlib import Path
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     from ..observations.formats import write_text_atomic
+    from ..support.mpl import pyplot
+
+    plt = pyplot()
     from ..observations.targets import describe
 
     out = Path(out_dir)
