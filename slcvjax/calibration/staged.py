@@ -314,6 +314,36 @@ BOARD_CHUNK = 16
 _refine_boards = PersistentJit(map_rows(lambda rows: _refine_poses(*rows), BOARD_CHUNK), "refine_poses")
 
 
+MIN_POSE_DOTS = 4  # the fewest dots whose rays fix a board's pose (planar PnP)
+
+
+def dots_on_mirror(camera: Camera, mirror: Mirror, pk: Packed) -> np.ndarray:
+    """Per (view, board) pose of ``pk``: how many of its dots back-project onto ``mirror`` (n_poses,)."""
+    rays, _ = map_padded(rays_with_pixel_metric, camera, mirror, rows=pk.dot_pixels)
+    return np.bincount(np.asarray(pk.dot_pose)[np.asarray(rays.valid)], minlength=pk.n_poses)
+
+
+def without_boards(obs: Observations, keys: set[tuple[int, str]]) -> Observations:
+    """``obs`` with the boards ``keys`` ((view, board name)) left out of their views: their dots
+    dropped, and the spots and stripes on them left without a board (placed again later on the
+    first board plane their ray meets)."""
+    views = []
+    for vi, v in enumerate(obs.views):
+        gone = {b for (w, b) in keys if w == vi}
+        if not gone:
+            views.append(v)
+            continue
+        views.append(
+            dataclasses.replace(
+                v,
+                boards={b: x for b, x in v.boards.items() if b not in gone},
+                spots=[dataclasses.replace(s, board=None) if s.board in gone else s for s in v.spots],
+                stripes=[dataclasses.replace(s, board=None) if s.board in gone else s for s in v.stripes],
+            )
+        )
+    return dataclasses.replace(obs, views=views)
+
+
 def board_poses(
     camera: Camera, mirror: Mirror, pk: Packed, start: Pose | None = None, flips: bool = True
 ) -> tuple[list[Pose], StageReport]:
@@ -330,7 +360,7 @@ def board_poses(
     pts = np.asarray(pk.dot_points)
     n_p = pk.n_poses
     counts = np.bincount(idx[ok], minlength=n_p)
-    for k in np.flatnonzero(counts < 4):
+    for k in np.flatnonzero(counts < MIN_POSE_DOTS):
         vi, b = pk.pose_keys[k]
         raise CalibrationError(
             f"views[{vi}].boards.{b}: {int(counts[k])} dots back-project onto the mirror (need at least 4 for its pose)"
@@ -434,6 +464,14 @@ def staged(
             )
         rim = np.concatenate([v.rim for v in obs.views]) if obs.views else np.zeros((0, 2))
         mirrors, rep_m = mirror_from_rim(camera, rim, obs.mirror_radius, obs.mirror_height, obs.mirror_shape)
+    # a board whose dots mostly miss a staged mirror cannot be posed: left out, not the whole calibration
+    short = {k for m in mirrors for k in np.flatnonzero(dots_on_mirror(camera, m, pk) < MIN_POSE_DOTS)}
+    left_out = []
+    if short and len(short) < pk.n_poses:
+        keys = {tuple(pk.pose_keys[k]) for k in sorted(short)}
+        obs = without_boards(obs, keys)
+        pk = pack(obs)
+        left_out = [f"views[{vi}].boards.{b}" for vi, b in sorted(keys)]
     best = None
     for i, m in enumerate(mirrors):
         poses, rep_p = board_poses(camera, m, pk)
@@ -442,6 +480,11 @@ def staged(
     mirror, poses, rep_p, chosen = best
     if len(mirrors) > 1:
         rep_m.notes.append(f"two-fold ambiguity resolved by the boards' fit: candidate {chosen + 1} kept")
+    if left_out:
+        rep_p.notes.append(
+            f"{len(left_out)} board(s) left out, fewer than {MIN_POSE_DOTS} of their dots back-project onto the "
+            f"staged mirror: {', '.join(left_out)}"
+        )
     n_open = sum(s.board is None for v in obs.views for s in v.spots)
     n_open_t = sum(len(s.pixels) for v in obs.views for s in v.stripes if s.board is None)
     if n_open or n_open_t:
