@@ -61,6 +61,7 @@ def _check(obs, level: float, truth=None, **kw) -> dict:
     t1 = time.perf_counter()
     unc = sj.report(res, obs)["uncertainty"]
     out = unc["consistency"] | {"calibrate_s": t1 - t0, "report_s": time.perf_counter() - t1}
+    out["withdrawn"] = [i for i, x in enumerate(unc["lasers"]) if "suspect" in x.get("status", "")]
     if truth is not None:
         x_ref = laser_working_points(res.rig, res.params.poses, res.packed)
         pos, ang = sj.laser_errors(res.rig, truth.rig, x_ref)
@@ -70,6 +71,15 @@ def _check(obs, level: float, truth=None, **kw) -> dict:
         out["error_over_std"] = own.tolist()
         out["error_over_checked_std"] = (own / scale).tolist()
     return out
+
+
+def _finite(x):
+    """``x`` with every non-finite float as None (JSON has no NaN)."""
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_finite(v) for v in x]
+    return None if isinstance(x, float) and not np.isfinite(x) else x
 
 
 def main() -> None:
@@ -96,7 +106,15 @@ def main() -> None:
                 runs.append({"seed": seed, "refused": str(e)})
                 print(f"{name} seed {seed}: refused: {e}", flush=True)
                 continue
-            runs.append({"seed": seed, "tests": c["tests"], "failed": c["failed"], "report_s": c["report_s"]})
+            runs.append(
+                {
+                    "seed": seed,
+                    "tests": c["tests"],
+                    "failed": c["failed"],
+                    "withdrawn": c["withdrawn"],
+                    "report_s": c["report_s"],
+                }
+            )
             print(f"{name} seed {seed}: {c['tests']} tests, {len(c['failed'])} failed", flush=True)
         done = [r for r in runs if "refused" not in r]
         alarms = sum(bool(r["failed"]) for r in done)
@@ -106,6 +124,7 @@ def main() -> None:
             "calibrated": len(done),
             "alarms": alarms,
             "false_alarm_rate": alarms / max(len(done), 1),
+            "lasers_withdrawn": sum(len(r["withdrawn"]) for r in done),
             "tests_per_run": float(np.mean([r["tests"] for r in done])),
             "report_s_median": float(np.median([r["report_s"] for r in done])),
         }
@@ -127,6 +146,7 @@ def main() -> None:
                     "seed": seed,
                     "failed": groups,
                     "named": "laser 2" in groups,
+                    # NaN (None in the JSON) where the laser ended undetermined
                     "noisy_laser_error_over_std": c["error_over_std"][2],
                     "noisy_laser_error_over_checked_std": c["error_over_checked_std"][2],
                 }
@@ -142,8 +162,9 @@ def main() -> None:
             "others_named": int(sum(len([g for g in r["failed"] if g != "laser 2"]) for r in named)),
             "noisy_laser_beyond_3_std": sum(r["noisy_laser_error_over_std"] > 3 for r in named),
             "noisy_laser_beyond_3_checked_std": sum(r["noisy_laser_error_over_checked_std"] > 3 for r in named),
+            "noisy_laser_undetermined": sum(not np.isfinite(r["noisy_laser_error_over_std"]) for r in named),
             "noisy_laser_error_over_checked_std_rms": float(
-                np.sqrt(np.mean([r["noisy_laser_error_over_checked_std"] ** 2 for r in named]))
+                np.sqrt(np.nanmean([r["noisy_laser_error_over_checked_std"] ** 2 for r in named]))
             ),
         }
     out["machine"] = {
@@ -163,7 +184,7 @@ def main() -> None:
         )
     )
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(out, indent=1))
+    Path(args.out).write_text(json.dumps(_finite(out), indent=1))
 
 
 if __name__ == "__main__":

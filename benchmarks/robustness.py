@@ -23,7 +23,9 @@ The corrupted observations are calibrated (``calibrate``) and compared with:
 * the calibration's own claim: the worst laser's error over its reported standard deviation
   (a confident wrong answer is a large ratio; an undetermined laser is counted apart), before
   and after the final consistency check scales the std of the lasers it flags
-  (``worst_laser_over_checked_std``), and how many runs the check raised an alarm in;
+  and withdraws the std of the lasers that kept fewer than half their spots
+  (``worst_laser_over_checked_std``, over the lasers that keep a std), how many runs the check
+  raised an alarm in, and how many lasers it withdrew;
 * the observations it flags, against the corrupted ones: those it relabelled or left out
   (``CalibrationResult.repairs``) and the report's outliers (residual above 5 sigma), each
   named by view, kind and index: precision and recall.
@@ -187,12 +189,14 @@ def one(n_lasers: int, n_views: int, mode: str, share: float, seed: int, noise: 
     rep, unc = full["residuals"], full["uncertainty"]
     # the final check's std factors (1 where it passed): the std the report gives
     factor = np.array([x.get("std_scale", 1.0) for x in unc["lasers"]])[: len(sd_p)]
+    # ... and the lasers whose std it withdrew (most of their spots left out: a possible wrong consensus)
+    withdrawn = np.array([x.get("position_std_mm") is None for x in unc["lasers"]])[: len(sd_p)]
     flagged = {key(o) for o in rep["outliers"]} | {
         (r.kind, r.view, r.board if r.kind == "dot" else None, r.index) for r in res.repairs
     }
     hit = len(flagged & wrong)
     claim = np.maximum(pos / sd_p, ang / sd_a)[determined]
-    claim_scaled = (np.maximum(pos / sd_p, ang / sd_a) / factor)[determined]
+    claim_scaled = (np.maximum(pos / sd_p, ang / sd_a) / factor)[determined & ~withdrawn]
     return base | {
         "seconds": seconds,
         "final_pass": res.passes[-1].result,
@@ -202,6 +206,7 @@ def one(n_lasers: int, n_views: int, mode: str, share: float, seed: int, noise: 
         "worst_laser_over_reported_std": float(claim.max()) if claim.size else None,
         "worst_laser_over_checked_std": float(claim_scaled.max()) if claim_scaled.size else None,
         "check_failed": [f["group"] for f in unc["consistency"]["failed"]],
+        "withdrawn_lasers": np.flatnonzero(withdrawn & determined).tolist(),
         "undetermined_lasers": np.flatnonzero(~determined).tolist(),
         "flagged": len(flagged),
         "relabelled": sum(r.action == "relabelled" for r in res.repairs),
@@ -278,6 +283,7 @@ def main() -> None:
                         default=None,
                     ),
                     "check_alarms": sum(bool(r["check_failed"]) for r in ok),
+                    "withdrawn_lasers": sum(len(r["withdrawn_lasers"]) for r in ok),
                     "undetermined_lasers": sum(len(r["undetermined_lasers"]) for r in ok),
                     "flagged_mean": mean("flagged"),
                     "boards_left_out": sum(r["boards_left_out"] for r in ok),

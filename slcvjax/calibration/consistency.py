@@ -7,8 +7,8 @@ spots, a board placed one row off, or a model that does not fit leaves residuals
 or shaped otherwise, than that; its reported std is then too small.  After the last pass this
 module tests, at a family-wise false-alarm level ``alpha`` (``CalibrationOptions.consistency_level``,
 default 0.01) split by Bonferroni evenly over the families of tests (the lasers, the boards, the
-direct views, the rims, the kinds' shapes), then evenly over each family's tests, so that a
-rig's few lasers are not drowned by its many boards:
+direct views, the rims), then evenly over each family's tests, so that a rig's few lasers are
+not drowned by its many boards:
 
 - **each group's spread against the rest of its kind**: per laser (its spots or stripe samples),
   per board in a view (its dots), per direct view (its corners) and per view's rim, the group's
@@ -18,15 +18,20 @@ rig's few lasers are not drowned by its many boards:
   model the two are independent ``sigma_k^2 chi^2 / nu`` and their ratio ``F(nu_g, nu_rest)``;
   the group fails where ``P(F >= f)`` is below its share of ``alpha``.  Comparing with the rest
   of the kind, not with ``sigma_k`` (estimated from every group, the bad one included), keeps one
-  bad laser among few from hiding by inflating its kind's sigma;
-- **each kind's shape**: the kind's rows, each divided by ``sigma_k sqrt(1 - h)``, against the
-  normal distribution by D'Agostino and Pearson's test of skew and kurtosis (``scipy.stats.normaltest``).
+  bad laser among few from hiding by inflating its kind's sigma.
+
+Each kind's shape is reported beside them (``shape``: its rows, each divided by
+``sigma_k sqrt(1 - h)``, their skew, excess kurtosis and the p-value of D'Agostino and Pearson's
+test of normality), but not tested against ``alpha``: with thousands of rows any real detector's
+errors (a centroid's pixel-locking, a corner's bias near the apex) depart measurably from a
+Gaussian, while the covariance, a second-moment statement, holds whatever their shape; the
+groups' spreads are what make a std wrong.
 
 Rows already reported as outliers (beyond ``RobustPolicy.outlier_sigmas``) and the observations the
 model cannot predict are left out: they are listed in the report.  A laser whose group fails has
 its std scaled by ``sqrt(S_g / (nu_g sigma_k^2))`` (its spread against the noise the covariance
-assumed; never down), and the report says so.  The rate at which clean
-data raise an alarm is measured by ``benchmarks/consistency.py``.
+assumed; never down), and the report says so.  The rate at which clean data raise an alarm is
+measured by ``benchmarks/consistency.py``.
 """
 
 import numpy as np
@@ -139,10 +144,15 @@ def final_check(result: CalibrationResult, table, outlier: np.ndarray, level: fl
         sel = kept_obs[row_obs] & (row_kind == k) & (row_free > 1e-6)
         if sel.sum() >= 20:
             z = row_r[sel] / (np.sqrt(_kind_sigma(result, k) ** 2 * row_free[sel]))
-            shape[KIND_NAMES[k]] = float(stats.normaltest(z).pvalue)
-    n_tests = len(spread) + len(shape)
-    families = {_family(name) for name in spread} | ({"kinds"} if shape else set())
-    size = {fam: sum(_family(name) == fam for name in spread) for fam in families} | {"kinds": len(shape)}
+            shape[KIND_NAMES[k]] = {
+                "rows": int(sel.sum()),
+                "skew": float(stats.skew(z)),
+                "excess_kurtosis": float(stats.kurtosis(z)),
+                "p_value": float(stats.normaltest(z).pvalue),
+            }
+    n_tests = len(spread)
+    families = {_family(name) for name in spread}
+    size = {fam: sum(_family(name) == fam for name in spread) for fam in families}
 
     def cut(fam: str) -> float:  # alpha split evenly over the families, then over each family's tests
         return level / len(families) / max(size[fam], 1)
@@ -163,10 +173,7 @@ def final_check(result: CalibrationResult, table, outlier: np.ndarray, level: fl
             )
             if name.startswith("laser "):
                 scale[int(name.split()[1])] = factor
-    for name, p in shape.items():
-        if p < cut("kinds"):
-            failed.append({"test": "normality", "group": f"kind {name}", "p_value": p})
-    return {"level": level, "tests": n_tests, "failed": failed, "laser_scale": scale}
+    return {"level": level, "tests": n_tests, "failed": failed, "shape": shape, "laser_scale": scale}
 
 
 def _family(name: str) -> str:

@@ -55,6 +55,10 @@ class RobustPolicy:
         misfit_rounds: the most rounds of leaving misfit board poses out of the box.
         aimed_turn_deg: a laser aimed through its spots that turns by more than this many degrees
             from the joint fit's is tried as another start (kept where it ends at a lower cost).
+        min_kept_share: a point laser that keeps fewer than this share of the spots labelled its
+            own (the rest left out, given to another laser, or outliers) has its std withdrawn
+            in the report: most of its spots disagree with its line, which may rest on a
+            consensus of wrong ones.
     """
 
     loss: str = "huber"
@@ -71,6 +75,7 @@ class RobustPolicy:
     misfit_min_px: float = 2.0
     misfit_rounds: int = 3
     aimed_turn_deg: float = 10.0
+    min_kept_share: float = 0.5
 
     def __post_init__(self):
         if self.loss not in LOSSES:

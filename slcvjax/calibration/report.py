@@ -156,10 +156,20 @@ def report(result: CalibrationResult, obs: Observations | None = None) -> dict:
     lasers = _element_uncertainty(result, cov, x_ref, pos, ang, held)
     for i, factor in check["laser_scale"].items():
         _scale_laser(lasers[i], factor)
+    thin = _thin_lasers(obs, result, kind, ok, outlier, laser)
+    for i, (kept, labelled) in thin.items():
+        _withdraw_laser(lasers[i], kept, labelled)
+    if thin:
+        status.append(
+            f"{len(thin)} laser(s) kept fewer than {result.options.robust.min_kept_share:.0%} of their spots "
+            "after the repairs "
+            f"({', '.join(f'laser {i}: {k} of {n}' for i, (k, n) in thin.items())}): what is left may be a wrong "
+            "consensus, so their std are withdrawn"
+        )
     uncertainty = {
         "converged": result.converged,
         **({"status": "; ".join(status)} if status else {}),
-        "consistency": {k: check[k] for k in ("level", "tests", "failed")},
+        "consistency": {k: check[k] for k in ("level", "tests", "failed", "shape")},
         "sigma_px": sigma,
         "camera_std": dict(zip(CAMERA_NAMES, _finite_or_none(sd[CAMERA_COLUMNS]), strict=True)),
         "mirror_std": {
@@ -190,10 +200,7 @@ def report(result: CalibrationResult, obs: Observations | None = None) -> dict:
 def _check_status(check: dict) -> str:
     """``uncertainty.status``'s line for a failed final check."""
     names = ", ".join(
-        f"{f['group']} ({f['ratio']:.2f}x the variance of the rest of its kind)"
-        if f["test"] == "spread"
-        else f"{f['group']} (not normal)"
-        for f in check["failed"][:6]
+        f"{f['group']} ({f['ratio']:.2f}x the variance of the rest of its kind)" for f in check["failed"][:6]
     )
     more = f" and {len(check['failed']) - 6} more" if len(check["failed"]) > 6 else ""
     return (
@@ -201,6 +208,42 @@ def _check_status(check: dict) -> str:
         f"({names}{more}): the residuals do not follow the noise model there, and the std assume they do; "
         "a laser's std is scaled by the root of its spread ratio"
     )
+
+
+def _thin_lasers(obs: Observations, result: CalibrationResult, kind, ok, outlier, laser) -> dict[int, tuple[int, int]]:
+    """Point lasers (by their index in the file) that kept fewer than ``min_kept_share``
+    (:class:`slcvjax.calibration.options.RobustPolicy`) of their spots: of the spots that ended
+    with its label (given to it by a repair included) or were lost from it (left out while its
+    own, or outliers of its line), those kept.  A spot given to another laser is not counted: it
+    was never this laser's.  ``{laser: (kept, kept + lost)}``: most of the spots once its own
+    disagree with the line it ended on, which may rest on a consensus of wrong ones."""
+    n = obs.n_lasers
+    spot = ok & (kind == Kind.SPOT)
+    kept = np.bincount(laser[spot & ~outlier], minlength=n)[:n]
+    lost = np.bincount(laser[spot & outlier], minlength=n)[:n]
+    for r in result.repairs:
+        if r.kind == "spot" and r.action == "left out" and r.laser is not None and 0 <= r.laser < n:
+            lost[r.laser] += 1
+    held = set(result.rig.element_indices(result.undetermined_lasers))
+    share = result.options.robust.min_kept_share
+    return {
+        int(i): (int(kept[i]), int(kept[i] + lost[i]))
+        for i in np.flatnonzero(kept < share * (kept + lost))
+        if int(i) not in held
+    }
+
+
+def _withdraw_laser(item: dict, kept: int, labelled: int) -> None:
+    """Withdraw a laser's std in ``uncertainty.lasers[i]`` (None) and say why."""
+    for key in ("position_std_mm", "direction_std_deg", "half_angle_std_deg"):
+        if key in item:
+            item[key] = None
+    item.pop("std_scale", None)
+    note = (
+        f"suspect: only {kept} of the {labelled} spots once its own are left after the repairs; its line "
+        "may rest on a consensus of wrong spots, so no std is given"
+    )
+    item["status"] = f"{item['status']}; {note}" if item.get("status") else note
 
 
 def _scale_laser(item: dict, factor: float) -> None:
