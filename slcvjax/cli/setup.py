@@ -123,8 +123,8 @@ def _images(args) -> int:
         raise FormatError(f"{folder}: no image matches --views {args.views!r}")
     direct = [] if args.direct.lower() == "none" else matches(args.direct)
     if args.direct.lower() != "none" and not direct:
-        log.warning(f"warning: no image matches --direct {args.direct!r}: no direct views (the intrinsics from "
-                    "the mirror's views alone, or from calibrate --camera)")  # fmt: skip
+        log.warning(f"warning: no image matches --direct {args.direct!r}: without direct views, give the camera's "
+                    "intrinsics to slcvjax calibrate with --camera")  # fmt: skip
     out = folder / "setup.json"
     write_json_atomic(out, setup_to_json(with_images(setup, views, direct)))
     read_setup(out)
