@@ -100,6 +100,8 @@ def test_the_tutorial_runs_and_calibrates_within_the_bound(tmp_path, monkeypatch
     print(f"tutorial: lasers' RMS error over the bound: position {ratio_pos:.2f}, direction {ratio_ang:.2f}")
     assert ratio_pos < BOUND_RATIO and ratio_ang < BOUND_RATIO, (ratio_pos, ratio_ang)
 
-    points = json.loads(Path("my-rig/pipe.json").read_text())
-    circles = [c for c in points.get("circles", []) if c]
+    pipe = json.loads(Path("my-rig/pipe_observations.json").read_text())["simulation"]["pipe"]
+    circles = [v["circle"] for v in json.loads(Path("my-rig/pipe.json").read_text())["views"] if v.get("circle")]
     assert circles, "no circle fitted in the pipe"
+    for c in circles:  # within 4 of its std, or 1 mm
+        assert abs(c["diameter"] - pipe["diameter"]) < max(4 * c["diameter_std"], 1.0), (c, pipe)

@@ -53,8 +53,6 @@ def _rig(args):
     from ..observations.simulate import make_scene
     from .setup import image_size, mirror_distance, mirror_size
 
-    if args.lasers < 1:
-        raise ValueError(f"--lasers: must be at least 1, got {args.lasers}")
     if args.mirror is None and args.mirror_distance is None and args.image_size is None and not args.laser_tilt:
         return make_scene(args.preset, n_lasers=args.lasers, n_views=1).rig
     radius, height = PAPER_CONE[:2] if args.mirror is None else mirror_size(args.mirror)
@@ -66,9 +64,8 @@ def _preset_scene(args):
     """The preset's box of dot targets, the rig (resized where asked) at the preset's poses."""
     from ..observations.simulate import PAPER_HALF_WIDTH, box_scene, make_scene, paper_views
 
-    if args.views < 1 or args.direct_views < 0:
-        raise ValueError(f"--views must be at least 1 and --direct-views at least 0, got {args.views}, "
-                         f"{args.direct_views}")  # fmt: skip
+    if args.direct_views < 0:
+        raise ValueError(f"--direct-views: must be at least 0, got {args.direct_views}")
     make_scene(args.preset, n_lasers=1, n_views=1)  # the preset's name checked
     return box_scene(_rig(args), paper_views(args.views), PAPER_HALF_WIDTH, n_chess_views=args.direct_views)
 
@@ -80,9 +77,8 @@ def _own_box_scene(args):
     from ..observations.simulate import paper_views
     from .setup import box_options, rig_box_setup
 
-    if args.views < 1 or args.direct_views < 0:
-        raise ValueError(f"--views must be at least 1 and --direct-views at least 0, got {args.views}, "
-                         f"{args.direct_views}")  # fmt: skip
+    if args.direct_views < 0:
+        raise ValueError(f"--direct-views: must be at least 0, got {args.direct_views}")
     if args.mirror is None:
         args.mirror = "cone:20x10"
     rig = _rig(args)
