@@ -105,3 +105,33 @@ def test_the_tutorial_runs_and_calibrates_within_the_bound(tmp_path, monkeypatch
     assert circles, "no circle fitted in the pipe"
     for c in circles:  # within 4 of its std, or 1 mm
         assert abs(c["diameter"] - pipe["diameter"]) < max(4 * c["diameter_std"], 1.0), (c, pipe)
+
+
+def test_the_resized_rig_is_the_reference_rig_at_its_sizes():
+    from slcvjax.images.own_box import sized_rig
+
+    ref, same = sj.paper_rig(6), sized_rig(n_lasers=6)
+    assert same is not None and float(same.camera.fx) == pytest.approx(float(ref.camera.fx), rel=1e-12)
+    big = sized_rig((1280, 960), 40.0, 20.0, 96.0, 6, laser_tilt_deg=10.0)
+    assert big.camera.width == 1280 and float(big.camera.fx) == pytest.approx(2 * float(ref.camera.fx))
+    tilt = np.degrees(
+        np.arcsin(np.asarray(big.lasers.directions)[:, 2]) - np.arcsin(np.asarray(ref.lasers.directions)[:, 2])
+    )
+    np.testing.assert_allclose(tilt, -10.0, atol=1e-9)
+
+
+def test_setup_images_lists_the_photos_and_names_a_folder_without_them(tmp_path, capsys):
+    setup = tmp_path / "setup.json"
+    assert main(["setup", "init", "--mirror", "cone:20x10", "--lasers", "3", "--out", str(setup)]) == 0
+    photos = tmp_path / "photos"
+    (photos / "box").mkdir(parents=True)
+    for name in ("box/b.jpg", "box/a.jpg", "d1.jpg", "notes.txt"):
+        (photos / name).write_bytes(b"")
+    assert main(["setup", "images", str(setup), str(photos), "--views", "box/*.jpg", "--direct", "d*.jpg"]) == 0
+    doc = json.loads((photos / "setup.json").read_text())
+    assert [v["image"] for v in doc["views"]] == ["box/a.jpg", "box/b.jpg"]
+    assert doc["chessboard_views"] == [{"image": "d1.jpg", "board": "chess"}]
+    assert doc["boards"] == json.loads(setup.read_text())["boards"]
+    capsys.readouterr()
+    assert main(["setup", "images", str(setup), str(photos), "--views", "*.png"]) == 2
+    assert "no image matches --views '*.png'" in capsys.readouterr().err
