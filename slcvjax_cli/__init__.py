@@ -95,6 +95,46 @@ def _export_opencv_flag(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _rig_flags(parser: argparse.ArgumentParser, simulate: bool) -> None:
+    """The rig's sizes: ``--mirror``, ``--lasers``, ``--mirror-distance`` and ``--image-size``, the same in
+    ``setup init`` (a user's rig) and ``simulate`` (a simulated rig of that size; default the preset's)."""
+    if simulate:
+        parser.add_argument(
+            "--mirror",
+            help="a rig of another size: its cone mirror, cone:RADIUSxHEIGHT in mm (default the preset's cone:20x10)",
+        )
+        parser.add_argument("--lasers", type=int, default=10, help="number of lasers (default 10)")
+    else:
+        parser.add_argument("--mirror", required=True, help="the mirror, cone:RADIUSxHEIGHT in mm, e.g. cone:20x10")
+        parser.add_argument("--lasers", type=int, required=True, help="number of lasers")
+    parser.add_argument(
+        "--mirror-distance", type=float, default=None, help="the mirror's apex in front of the lens, mm (default 48)"
+    )
+    parser.add_argument("--image-size", default=None, help="the camera's image, WIDTHxHEIGHT px (default 640x480)")
+
+
+def _box_flags(parser: argparse.ArgumentParser) -> None:
+    """The box of targets ``setup init`` lays out (and ``simulate --target`` renders)."""
+    parser.add_argument("--box", type=float, default=280.0, help="the box's inner width in mm (default 280)")
+    parser.add_argument("--walls", type=int, default=4, help="wall targets around the sensor (default 4)")
+    parser.add_argument(
+        "--squares", help="per wall: charuco squares, aprilgrid tags or dots, COLSxROWS (default 8x3, 6x2, 3x3)"
+    )
+    parser.add_argument(
+        "--square-mm", type=float, help="charuco square, aprilgrid tag or dots' x pitch, mm (default 18, 18, 50)"
+    )
+    parser.add_argument("--marker-mm", type=float, help="charuco marker or dots' y pitch, mm (default 13.5, -, 20)")
+    parser.add_argument("--spacing", type=float, default=0.3, help="aprilgrid: the gap over the tag (default 0.3)")
+    parser.add_argument(
+        "--board-z", type=float, help="the boards' centre along the axis, mm (default: the middle of the mirror's view)"
+    )
+    parser.add_argument(
+        "--chessboard",
+        default="9x6x20",
+        help="the direct-view chessboard, COLSxROWSxSQUARE_MM inner corners (default 9x6x20; 'none': without)",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="slcvjax", description="Calibrate and measure with a structured-light catadioptric vision sensor."
@@ -107,8 +147,25 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--preset", default="paper", help="scene preset (default: paper)")
     s.add_argument("--noise", type=float, default=0.0, help="Gaussian pixel noise sigma in px (default 0)")
     s.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
-    s.add_argument("--lasers", type=int, default=10, help="number of lasers (default 10)")
     s.add_argument("--views", type=int, default=16, help="number of catadioptric views (default 16)")
+    _rig_flags(s, simulate=True)
+    s.add_argument(
+        "--target",
+        choices=("charuco-box", "aprilgrid-box"),
+        help="instead of the preset's box of dots: the box of coded targets that slcvjax setup init lays out for "
+        "this rig (the same flags: --box, --walls, --squares, ..., --chessboard); --render writes DIR/images/"
+        "setup.json as setup init and setup images would",
+    )
+    s.add_argument(
+        "--laser-tilt",
+        type=float,
+        default=0.0,
+        metavar="DEG",
+        help="each beam turned this many degrees towards the camera (default 0: nearly across the mirror's axis)",
+    )
+    s.add_argument(
+        "--direct-views", type=int, default=12, help="direct views of the chessboard, for the intrinsics (default 12)"
+    )
     s.add_argument("--out", required=True, help="output directory")
     s.add_argument("--render", action="store_true", help="also render DIR/images/ (PNG per view) and setup.json")
     s.add_argument(
@@ -122,6 +179,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--image-noise", type=float, default=1.0, help="sensor noise of rendered images, grey levels")
     s.add_argument("--blur", type=float, default=0.6, help="optical blur of rendered images, px (default 0.6)")
     s.add_argument("--exposure", type=float, default=1.0, help="exposure gain of rendered images (default 1)")
+    box = s.add_argument_group("with --target: the box of targets (as slcvjax setup init)")
+    _box_flags(box)
     s.set_defaults(func=_command("simulate"))
 
     t = _add(sub, "detect", help="detect spots, dots, rim and corners in an image folder (with setup.json)")
@@ -386,8 +445,7 @@ def build_parser() -> argparse.ArgumentParser:
     si = su_sub.add_parser(
         "init", help="a setup.json for a box of printed targets around the sensor (then: slcvjax target)"
     )
-    si.add_argument("--mirror", required=True, help="the mirror, cone:RADIUSxHEIGHT in mm, e.g. cone:20x10")
-    si.add_argument("--lasers", type=int, required=True, help="number of lasers")
+    _rig_flags(si, simulate=False)
     si.add_argument(
         "--target",
         default="charuco-box",
@@ -395,29 +453,28 @@ def build_parser() -> argparse.ArgumentParser:
         help="the wall targets (default charuco-box)",
     )
     si.add_argument("--out", default="setup.json", help="output file (default ./setup.json)")
-    si.add_argument("--box", type=float, default=280.0, help="the box's inner width in mm (default 280)")
-    si.add_argument("--walls", type=int, default=4, help="wall targets around the sensor (default 4)")
-    si.add_argument(
-        "--mirror-distance", type=float, default=48.0, help="the mirror's apex in front of the lens, mm (default 48)"
-    )
-    si.add_argument("--image-size", default="640x480", help="the camera's image, WIDTHxHEIGHT px (default 640x480)")
-    si.add_argument(
-        "--squares", help="per wall: charuco squares, aprilgrid tags or dots, COLSxROWS (default 8x3, 6x2, 3x3)"
-    )
-    si.add_argument(
-        "--square-mm", type=float, help="charuco square, aprilgrid tag or dots' x pitch, mm (default 18, 18, 50)"
-    )
-    si.add_argument("--marker-mm", type=float, help="charuco marker or dots' y pitch, mm (default 13.5, -, 20)")
-    si.add_argument("--spacing", type=float, default=0.3, help="aprilgrid: the gap over the tag (default 0.3)")
-    si.add_argument(
-        "--board-z", type=float, help="the boards' centre along the axis, mm (default: the middle of the mirror's view)"
-    )
-    si.add_argument(
-        "--chessboard",
-        default="9x6x20",
-        help="the direct-view chessboard, COLSxROWSxSQUARE_MM inner corners (default 9x6x20; 'none': without)",
-    )
+    _box_flags(si)
     si.set_defaults(func=_command("setup"))
+    sm = su_sub.add_parser(
+        "images",
+        help="after the photos: write IMAGE_DIR/setup.json, the setup with the images listed (then: slcvjax detect)",
+    )
+    sm.add_argument("setup", help="the slcv-setup/1 file setup init wrote")
+    sm.add_argument("folder", help="the image folder (its setup.json is written; the images are named relative to it)")
+    sm.add_argument(
+        "--views",
+        default="view*.png",
+        metavar="GLOB",
+        help="the catadioptric images (the sensor in the box), a pattern in the folder (default view*.png)",
+    )
+    sm.add_argument(
+        "--direct",
+        default="chess*.png",
+        metavar="GLOB",
+        help="the direct views of the chessboard (for the intrinsics), a pattern in the folder (default chess*.png; "
+        "'none': without)",
+    )
+    sm.set_defaults(func=_command("setup"))
 
     d = _add(sub, "demo", help="the main job on the simulated reference rig")
     d.add_argument(

@@ -32,6 +32,7 @@ def coded_box_scene(
     target: str = "charuco-box",
     n_chess_views: int = 0,
     mirror_distance_mm: float | None = None,
+    chessboard: tuple[int, int, float] = CHESS,
     **box,
 ) -> Scene:
     """The sensor at ``views`` (V, 6: rotation vector rad, translation mm of ``T_box_cam``) in a box
@@ -40,8 +41,9 @@ def coded_box_scene(
     ``mirror_distance_mm`` (default: the rig's apex distance along the camera's axis) and ``box``
     (``width_mm``, ``n_walls``, ``squares``, ``square_mm``, ``marker_mm``, ``spacing``,
     ``board_z_mm``) go to :func:`~slcvjax.images.targetbox.box_setup`.  The box frame is the
-    camera's at the sensor's nominal place.  ``n_chess_views`` direct views of simulate's 9 x 6,
-    25 mm chessboard (a grid of points, as the preset's).  Returns the :class:`Scene`; its
+    camera's at the sensor's nominal place.  ``n_chess_views`` direct views of the chessboard
+    ``chessboard`` (inner corners cols, rows and square mm; default simulate's 9 x 6, 25 mm), named
+    ``chess`` as ``box_setup`` names it.  Returns the :class:`Scene`; its
     ``board_types`` holds each wall's spec, its ``info["box"]`` the setup's box.
     """
     if target not in ("charuco-box", "aprilgrid-box"):
@@ -69,13 +71,13 @@ def coded_box_scene(
         T_cam_box = Pose(so3_exp(jnp.asarray(v[:3])), jnp.asarray(v[3:])).inverse()
         box_poses.append({b: T_cam_box @ T_box_board[b] for b in walls})
     boards = {b: np.asarray(setup.boards[b].points, float) for b in walls}
-    chess = grid_points(*CHESS[:2], CHESS[2])
+    chess = grid_points(*chessboard[:2], chessboard[2])
     boards["chess"] = chess
     chess_poses = _chess_poses(cam, chess, n_chess_views, np.random.default_rng(11)) if n_chess_views else []
     info = {
         "preset": target,
         "box": setup.extra["box"],
-        "chessboard": dict(zip(("cols", "rows", "square_mm"), CHESS, strict=True)),
+        "chessboard": dict(zip(("cols", "rows", "square_mm"), chessboard, strict=True)),
     }
     types = {b: dict(setup.boards[b].target) for b in walls}
     return Scene(rig, boards, box_poses, "chess", chess_poses, 90, info, board_types=types)

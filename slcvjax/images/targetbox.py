@@ -182,6 +182,20 @@ def box_setup(
     return setup, warnings
 
 
+def with_images(setup, views: list[str], direct: list[str]):
+    """``setup`` with its images: ``views`` (catadioptric) and ``direct`` (views of its one direct-view
+    board), names relative to the image folder.  A copy; ``setup`` is left as it is."""
+    import copy
+
+    out = copy.copy(setup)
+    out.views = list(views)
+    boards = [k for k, b in setup.boards.items() if b.azimuth_deg is None]
+    if direct and len(boards) != 1:
+        raise ValueError(f"direct views need one board seen directly in the setup, found {len(boards)}: {boards}")
+    out.chessboard_views = [(name, boards[0]) for name in direct]
+    return out
+
+
 def write_targets(setup: Setup, out_dir, source: str = "setup.json") -> tuple[list, str]:
     """Write a true-scale PDF per board of ``setup`` and the build sheet into ``out_dir``.
 
