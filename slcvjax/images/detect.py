@@ -48,6 +48,7 @@ from ..observations.formats import (
 )
 from ..observations.targets import check_disjoint_ids, grid_shape, read_board, spec_json
 from .coded import coded_walls, detect_coded_view, detect_direct
+from .light import DEFAULT_LIGHT, DetectionSettings, laser_light, read_detection, scene_channel
 from .stripes import StripeSamples, find_stripes
 
 SETUP_FORMAT = "slcv-setup/1"
@@ -100,6 +101,7 @@ class Setup:
     # each laser's kind (point, plane, cone) in order, when the setup has line or ring lasers
     laser_kinds: list[str] | None = None
     stripe_sigma_mm: float | None = None  # the stripes' Gaussian std across them on a surface, when known
+    light: DetectionSettings = field(default_factory=DetectionSettings)  # the lasers' colour, the spot threshold
 
     @property
     def kinds(self) -> list[str]:
@@ -152,6 +154,8 @@ def setup_to_json(setup: Setup) -> dict:
         doc["laser_kinds"] = list(setup.laser_kinds)
     if setup.stripe_sigma_mm is not None:
         doc["stripe_sigma_mm"] = float(setup.stripe_sigma_mm)
+    if not setup.light.is_default:
+        doc["detection"] = setup.light.to_json()
     doc.update(setup.extra)
     return doc
 
@@ -244,11 +248,11 @@ def read_setup(path: str | Path) -> Setup:
         if not stripe_sigma > 0:
             ctx.fail("stripe_sigma_mm", f"must be positive, got {json.dumps(stripe_sigma)}")
     known = {"format", "image_size", "mirror_shape", "n_lasers", "laser_azimuth_deg", "boards", "views"}
-    known |= {"chessboard_views", "spot_sigma_mm", "rigid_boards", "laser_kinds", "stripe_sigma_mm"}
+    known |= {"chessboard_views", "spot_sigma_mm", "rigid_boards", "laser_kinds", "stripe_sigma_mm", "detection"}
     extra = {k: v for k, v in doc.items() if k not in known}
     return Setup(
         (w, h), radius, height, n_lasers, boards, views, chess, laser_az, extra, spot_sigma, list(rigid),
-        laser_kinds, stripe_sigma,
+        laser_kinds, stripe_sigma, read_detection(ctx, doc),
     )  # fmt: skip
 
 
@@ -555,8 +559,10 @@ def find_spots(
     edge: int = 2,
     support: float = SPOT_SUPPORT,
     exclude: np.ndarray | None = None,
+    color: str = "red",
 ) -> np.ndarray:
-    """Laser spots inside the mirror's disc: (S, 2) centroids.
+    """Laser spots inside the mirror's disc: (S, 2) centroids (``color``: the lasers' colour,
+    :mod:`slcvjax.images.light`; below, red is the laser's channel and green the reference).
 
     Found where red minus green exceeds ``threshold`` grey levels; located by the
     centroid of red / green - 1, the laser's light relative to the scene's, over the
@@ -569,11 +575,11 @@ def find_spots(
     None): a region of red light that meets it is not a spot (a line or ring laser's stripe,
     and a spot on it).
     """
-    red = bgr[:, :, 2].astype(float) - bgr[:, :, 1].astype(float)
+    red, raw = laser_light(bgr, color)
     red = cv2.GaussianBlur(red, (0, 0), 0.7)
     mask = ((red > threshold) & disc.mask).astype(np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
-    green = bgr[:, :, 1].astype(float)
+    green = scene_channel(bgr, color)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * edge + 1, 2 * edge + 1))
     core = cv2.erode(disc.mask.astype(np.uint8), kernel).astype(bool)
     wall = wall_level(green, disc)
@@ -591,7 +597,6 @@ def find_spots(
         bright = cv2.dilate((labels == k).astype(np.uint8), grow).astype(bool)
         if not dotted[bright].any():
             ids.append(k)
-    raw = bgr[:, :, 2].astype(float) / np.maximum(green, 4.0) - 1.0
     return _weighted_centroids(raw, widened, ids)
 
 
@@ -963,18 +968,22 @@ class ImageDetection:
     stripes: StripeSamples | None = None  # the stripes' centre-line samples, where looked for
 
 
-def detect_catadioptric(bgr: np.ndarray, name: str = "", stripes: bool = False) -> ImageDetection:
+def detect_catadioptric(
+    bgr: np.ndarray, name: str = "", stripes: bool = False, light: DetectionSettings = DEFAULT_LIGHT
+) -> ImageDetection:
     """Rim pixels, dot centroids and spot centroids of one catadioptric image (unlabelled); with
     ``stripes``, also the centre-line samples of line and ring lasers' stripes
     (:func:`slcvjax.images.stripes.find_stripes`, away from the dots), and no spot is taken
-    from a stripe's light."""
-    green = bgr[:, :, 1].astype(float)
+    from a stripe's light.  ``light``: the lasers' colour and spot threshold (the scene is read
+    in a channel the lasers do not reach)."""
+    green = scene_channel(bgr, light.laser_color)
+    spot_args = {"threshold": light.threshold, "color": light.laser_color}
     disc = find_mirror(green)
     if disc is None:
         return ImageDetection(name, None, np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2)))
     dots, faint = find_dots(green, disc, with_faint=True)
     if not stripes:
-        return ImageDetection(name, disc, find_rim(green, disc), dots, find_spots(bgr, disc), green, faint)
+        return ImageDetection(name, disc, find_rim(green, disc), dots, find_spots(bgr, disc, **spot_args), green, faint)
     wall = wall_level(green, disc)
     dotted = (wall - green > DOT_SUPPORT * (wall - disc.outside_level)) & disc.mask
     st = find_stripes(bgr, disc.mask, dotted)
@@ -982,7 +991,7 @@ def detect_catadioptric(bgr: np.ndarray, name: str = "", stripes: bool = False) 
     iu = np.clip(np.rint(st.pixels).astype(int), 0, [lit.shape[1] - 1, lit.shape[0] - 1])
     lit[iu[:, 1], iu[:, 0]] = 1
     lit = cv2.dilate(lit, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (7, 7))).astype(bool)
-    spots = find_spots(bgr, disc, exclude=lit)
+    spots = find_spots(bgr, disc, exclude=lit, **spot_args)
     return ImageDetection(name, disc, find_rim(green, disc), dots, spots, green, faint, st)
 
 
@@ -1359,7 +1368,7 @@ def detect_folder(folder: str | Path, progress: bool = False) -> tuple[Observati
         counts[name] = {"corners": len(corners)}
         cal_views.append(CalibrationViewObs(name, b, corners, np.ones(len(corners), bool)))
     with_stripes = bool(setup.sheet_lasers)
-    dets = [detect_catadioptric(images[v], Path(v).stem, stripes=with_stripes) for v in setup.views]
+    dets = [detect_catadioptric(images[v], Path(v).stem, stripes=with_stripes, light=setup.light) for v in setup.views]
     boards_seen, board_probs, ambiguous = [], [], []
     for v, d in enumerate(dets):
         cands: dict = {}
