@@ -21,26 +21,13 @@ Writes JSON with the machine and versions.
 import argparse
 import copy
 import json
-import platform
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
-
-
-def _rig_scene(n_lasers: int, n_views: int, seed: int | None):
-    from slcvjax import box_scene, make_scene, paper_rig
-    from slcvjax.observations.simulate import PAPER_ROTATION_DEG, PAPER_TRANSLATION_MM
-
-    if seed is None:
-        return make_scene("paper", n_lasers=n_lasers, n_views=n_views)
-    rng = np.random.default_rng(seed)
-    views = np.zeros((n_views, 6))
-    views[1:, :3] = np.radians(rng.uniform(-1, 1, (n_views - 1, 3)) * np.asarray(PAPER_ROTATION_DEG))
-    views[1:, 3:] = rng.uniform(-1, 1, (n_views - 1, 3)) * np.asarray(PAPER_TRANSLATION_MM)
-    return box_scene(paper_rig(n_lasers), views)
-
+from bench_forward import machine
+from equivalence import _scene  # the preset, or the paper rig at sensor poses drawn from a seed
 
 RIGS = {
     "preset_10_lasers_16_views": (10, 16, False, 0.5),
@@ -89,7 +76,6 @@ def main() -> None:
     ap.add_argument("--noisy", type=float, default=3.0, help="the noisy laser's noise over the others'")
     ap.add_argument("--out", default="benchmarks/results/consistency.json")
     args = ap.parse_args()
-    import jax
 
     import slcvjax as sj
     from slcvjax.calibration.base import CalibrationError
@@ -98,7 +84,7 @@ def main() -> None:
     for name, (n_lasers, n_views, random_views, noise) in RIGS.items():
         runs = []
         for seed in range(args.seeds):
-            scene = _rig_scene(n_lasers, n_views, 100 + seed if random_views else None)
+            scene = _scene(n_lasers, n_views, 100 + seed if random_views else None)
             obs, _ = sj.simulate(scene, noise=noise, seed=seed)
             try:
                 c = _check(obs, args.level)
@@ -131,7 +117,7 @@ def main() -> None:
     for loss in ("huber", "linear"):
         named = []
         for seed in range(args.seeds):
-            obs, truth = sj.simulate(_rig_scene(5, 12, None), noise=0.4, seed=seed)
+            obs, truth = sj.simulate(_scene(5, 12, None), noise=0.4, seed=seed)
             bad = copy.deepcopy(obs)
             rng = np.random.default_rng(500 + seed)
             extra = 0.4 * np.sqrt(args.noisy**2 - 1.0)
@@ -167,13 +153,7 @@ def main() -> None:
                 np.sqrt(np.nanmean([r["noisy_laser_error_over_checked_std"] ** 2 for r in named]))
             ),
         }
-    out["machine"] = {
-        "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
-        "python": sys.version.split()[0],
-        "jax": jax.__version__,
-        "numpy": np.__version__,
-    }
+    out["machine"] = machine() | {"python": sys.version.split()[0], "numpy": np.__version__}
     print(
         json.dumps(
             {
