@@ -120,8 +120,26 @@ def _cone_mesh(mirror, n_az: int = 48, n_s: int = 8):
     return pts[..., 0], pts[..., 1], pts[..., 2]
 
 
+def _sheet_lines(sheets, j: int, length: float, n: int = 24) -> list[np.ndarray]:
+    """Line segments (each (2, 3) or (n+1, 3), mm) that draw sheet ``j`` of ``sheets``: a cone's
+    generatrices from its apex to ``length`` mm and the circle joining their ends; a plane's
+    (half-angle 90 deg) spokes and rim of a disc of radius ``length`` about its point."""
+    from .support.safe import orthonormal_basis
+
+    apex, axis = np.asarray(sheets.apex[j], float), np.asarray(sheets.axis[j], float)
+    theta = float(sheets.half_angle[j])
+    e1, e2 = (np.asarray(v, float) for v in orthonormal_basis(axis))
+    phi = np.linspace(0.0, 2 * np.pi, n + 1)
+    dirs = np.cos(theta) * axis[None] + np.sin(theta) * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2)
+    ends = apex[None] + length * dirs
+    spokes = [np.stack([apex, x]) for x in ends[:-1:3]]
+    return spokes + [ends]
+
+
 def plot_rig(rig, path, walls=(), truth=None, title: str | None = None, omit=()) -> Path:
-    """A 3D view of the sensor (the paper's Fig. 5): camera, cone mirror, laser lines and targets.
+    """A 3D view of the sensor (the paper's Fig. 5): camera, cone mirror, laser lines, line and ring
+    lasers' sheets of light (a plane as a disc of 150 mm about its point, a cone by its
+    generatrices to 150 mm) and targets.
 
     Args:
         rig: the calibrated :class:`~slcvjax.geometry.rig.Rig`.
@@ -172,17 +190,28 @@ def plot_rig(rig, path, walls=(), truth=None, title: str | None = None, omit=())
                 hits.append(s)
         return p, p + (min(hits) if hits else 300.0) * d
 
-    colors = plt.cm.tab10(np.arange(rig.lasers.n) % 10)
+    n_el = len(rig.element_kinds) if rig.kinds else rig.lasers.n
+    colors = plt.cm.tab10(np.arange(max(n_el, 1)) % 10)
+    point_el = rig.point_elements if rig.kinds else np.arange(rig.lasers.n)
     for i in range(rig.lasers.n):
         if i in omit:
             continue
+        e = int(point_el[i])  # its index in the file
         a, b = reach(rig.lasers, i)
-        ax.plot(*np.stack([a, b]).T, color=colors[i], lw=1.2, label=f"laser {i}" if rig.lasers.n <= 12 else None)
-        ax.scatter(*a, s=10, color=colors[i])
+        ax.plot(*np.stack([a, b]).T, color=colors[e], lw=1.2, label=f"laser {e}" if n_el <= 12 else None)
+        ax.scatter(*a, s=10, color=colors[e])
         spans.append(np.stack([a, b]))
         if truth is not None:
             a, b = reach(truth.lasers, i)
-            ax.plot(*np.stack([a, b]).T, color=colors[i], lw=0.8, ls="--")
+            ax.plot(*np.stack([a, b]).T, color=colors[e], lw=0.8, ls="--")
+    for j in range(rig.sheets.apex.shape[0] if rig.has_sheets else 0):
+        e = int(rig.sheet_elements[j])
+        kind = rig.sheets.kinds[j]
+        lines = _sheet_lines(rig.sheets, j, 150.0)
+        for k, seg in enumerate(lines):
+            label = f"laser {e} ({'line' if kind == 'plane' else 'ring'})" if k == 0 and n_el <= 12 else None
+            ax.plot(*seg.T, color=colors[e], lw=0.6, alpha=0.8, label=label)
+        spans.append(np.concatenate(lines))
     allp = np.concatenate(spans + [np.zeros((1, 3))])
     mid, half = (allp.max(0) + allp.min(0)) / 2, (allp.max(0) - allp.min(0)).max() / 2
     ax.set_xlim(mid[0] - half, mid[0] + half)
@@ -191,11 +220,13 @@ def plot_rig(rig, path, walls=(), truth=None, title: str | None = None, omit=())
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")
     ax.set_zlabel("z (mm)")
-    if 0 < rig.lasers.n <= 12:  # a camera without lasers has nothing to name
+    if 0 < n_el <= 12:  # a camera without lasers has nothing to name
         ax.legend(fontsize=7, loc="upper left")
     extra = " (dashed: truth)" if truth is not None else ""
     ax.set_title(
-        title or f"Camera, {'cone ' if isinstance(rig.mirror, ConeMirror) else ''}mirror and laser lines{extra}"
+        title
+        or f"Camera, {'cone ' if isinstance(rig.mirror, ConeMirror) else ''}mirror and "
+        f"{'lasers' if rig.has_sheets else 'laser lines'}{extra}"
     )
     fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)

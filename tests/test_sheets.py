@@ -133,3 +133,18 @@ def test_working_point_of_a_plane_is_the_foot_of_the_perpendicular():
 def test_bad_kinds_are_refused():
     with pytest.raises(ValueError, match="unknown kind 'line'"):
         Sheets.create(["line"], [[0.0, 0.0, 0.0]], [[0.0, 0.0, 1.0]])
+
+
+def test_the_rig_plot_draws_each_sheet_on_its_own_surface(tmp_path):
+    """plot_rig's lines for a line laser (a disc in its plane) and a ring laser (its cone's
+    generatrices and end circle) lie on their sheets: G = 0 at every vertex."""
+    from slcvjax.observations.simulate import paper_rig, sheet_rig
+    from slcvjax.plots import _sheet_lines, plot_rig
+
+    rig, _ = sheet_rig(paper_rig(), ("cone", "point", "plane"))
+    for j in range(rig.sheets.apex.shape[0]):
+        pts = np.concatenate(_sheet_lines(rig.sheets, j, 150.0))
+        sh = rig.sheets
+        g = np.array([float(sheet_value(jnp.asarray(x), sh.apex[j], sh.axis[j], sh.half_angle[j])) for x in pts])
+        assert np.abs(g).max() < 1e-9, g
+    assert plot_rig(rig, tmp_path / "rig.png").stat().st_size > 10_000
