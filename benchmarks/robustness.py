@@ -1,10 +1,10 @@
 """Robustness of the calibration to wrong labels and gross outliers: laser error against the bound, and the flags.
 
 Run: ``python benchmarks/robustness.py [--seeds 3] [--shares 0,0.05,0.1,0.2] [--gross 0.05,0.1]
-[--rows 0.25] [--regrid 0.25] [--noise 0.3] [--out FILE]``.
+[--rows 0.25] [--regrid 0.25] [--grid 0.25] [--mix 0.1] [--noise 0.3] [--out FILE]``.
 
 Scenes: the paper preset (10 lasers, 16 views) and an 8-laser rig at 12 views.  For each seed a
-scene is simulated at ``--noise`` px and corrupted in one of four ways:
+scene is simulated at ``--noise`` px and corrupted in one of these ways:
 
 * ``labels``: a share of its laser spots is given the label of the laser next to it in azimuth
   (what a detector does when two beams' spots lie close); the pixels stay true;
@@ -13,7 +13,11 @@ scene is simulated at ``--noise`` px and corrupted in one of four ways:
 * ``rows``: in a share of its views, one row of one board's dots is labelled as the row next
   to it (each of those dots carries the pixel of its neighbour one row up, which keeps its own);
 * ``regrid``: in a share of its views, one dot next to a grid position not seen there is
-  labelled as that position (a grid one step off at its edge, for one dot).
+  labelled as that position (a grid one step off at its edge, for one dot);
+* ``grid`` / ``grid_rigid`` (``--grid``): in a share of its views, the whole best-seen board
+  labelled one row off, calibrated with free board poses and with the rigid box;
+* ``mix`` (``--mix``): a share of dots and spots moved, the same share of spots relabelled, and
+  a row off in 2.5 times that share of the views, together.
 
 The corrupted observations are calibrated (``calibrate``) and compared with:
 
@@ -127,6 +131,42 @@ def shift_rows(obs, share: float, rng) -> tuple[object, set]:
     return obs, wrong
 
 
+def shift_grid(obs, share: float, rng) -> tuple[object, set]:
+    """``obs`` with, in ``share`` of its views, the whole of its best-seen board labelled one row
+    off: every dot whose neighbour one row up is seen takes that neighbour's pixel, and the dots
+    of the top row seen become unseen (a grid placed one row off as a whole)."""
+    wrong = set()
+    n = int(round(share * len(obs.views)))
+    for v in rng.choice(len(obs.views), size=n, replace=False):
+        view = obs.views[v]
+        b = max(view.boards, key=lambda name: int(view.boards[name][1].sum()))
+        px, seen = view.boards[b]
+        pts = obs.boards[b]
+        ys = np.round(pts[:, 1], 6)
+        rows = np.unique(ys)
+        cols = np.round(pts[:, 0], 6)
+        old_px, old_seen = px.copy(), seen.copy()
+        at = {(ys[k], cols[k]): k for k in range(len(pts))}
+        for j in range(len(pts)):
+            r = int(np.searchsorted(rows, ys[j]))
+            k = at.get((rows[r + 1], cols[j])) if r + 1 < len(rows) else None
+            if k is not None and old_seen[k]:
+                px[j], seen[j] = old_px[k], True
+                wrong.add(("dot", view.name, b, int(j)))
+            else:
+                seen[j] = False
+    return obs, wrong
+
+
+def mixture(obs, share: float, n_lasers: int, rng) -> tuple[object, set]:
+    """``share`` of the dots and spots moved (:func:`gross`), ``share`` of the spots labelled as the
+    next laser (:func:`relabel`), and one row off in ``2.5 share`` of the views (:func:`shift_rows`)."""
+    obs, a = gross(obs, share, rng)
+    obs, b = relabel(obs, share, n_lasers, rng)
+    obs, c = shift_rows(obs, 2.5 * share, rng)
+    return obs, a | b | c
+
+
 def regrid(obs, share: float, rng) -> tuple[object, set]:
     """``obs`` with, in ``share`` of the views where any board has one, one seen dot that lies
     next to a grid position not seen there labelled as that position (a grid placed one step
@@ -171,12 +211,16 @@ def one(n_lasers: int, n_views: int, mode: str, share: float, seed: int, noise: 
         obs, wrong = gross(obs, share, rng)
     elif mode == "regrid":
         obs, wrong = regrid(obs, share, rng)
+    elif mode in ("grid", "grid_rigid"):
+        obs, wrong = shift_grid(obs, share, rng)
+    elif mode == "mix":
+        obs, wrong = mixture(obs, share, n_lasers, rng)
     else:
         obs, wrong = shift_rows(obs, share, rng)
     base = {"mode": mode, "share": share, "seed": seed, "corrupted": len(wrong)}
     t0 = time.perf_counter()
     try:
-        res = require_determined(calibrate(obs))
+        res = require_determined(calibrate(obs, rigid=mode == "grid_rigid"))
     except CalibrationError as e:
         return base | {"refused": str(e), "seconds": time.perf_counter() - t0}
     seconds = time.perf_counter() - t0
@@ -192,8 +236,12 @@ def one(n_lasers: int, n_views: int, mode: str, share: float, seed: int, noise: 
     # ... and the lasers whose std it withdrew (most of their spots left out: a possible wrong consensus)
     withdrawn = np.array([x.get("position_std_mm") is None for x in unc["lasers"]])[: len(sd_p)]
     flagged = {key(o) for o in rep["outliers"]} | {
-        (r.kind, r.view, r.board if r.kind == "dot" else None, r.index) for r in res.repairs
+        (r.kind, r.view, r.board if r.kind == "dot" else None, r.index) for r in res.repairs if not r.whole_board
     }
+    names = {view.name: view for view in obs.views}
+    for r in res.repairs:  # a board left out whole flags each of its dots in that view
+        if r.whole_board and r.view in names and r.board in names[r.view].boards:
+            flagged |= {("dot", r.view, r.board, int(j)) for j in np.flatnonzero(names[r.view].boards[r.board][1])}
     hit = len(flagged & wrong)
     claim = np.maximum(pos / sd_p, ang / sd_a)[determined]
     claim_scaled = (np.maximum(pos / sd_p, ang / sd_a) / factor)[determined & ~withdrawn]
@@ -224,6 +272,10 @@ def main() -> None:
     ap.add_argument("--gross", default="0.05,0.1", help="shares of dots and spots moved 5-50 px")
     ap.add_argument("--rows", default="0.25", help="shares of views with a row of dots labelled one row off")
     ap.add_argument("--regrid", default="0.25", help="shares of views with a dot labelled as an unseen grid position")
+    ap.add_argument("--grid", default="", help="shares of views with a whole board one row off (free poses and rigid)")
+    ap.add_argument(
+        "--mix", default="", help="shares of the mixture: moved, relabelled, and rows off in 2.5x the views"
+    )
     ap.add_argument("--noise", type=float, default=0.3)
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
@@ -233,6 +285,8 @@ def main() -> None:
 
     cases = [("labels", s) for s in shares(args.shares)] + [("gross", s) for s in shares(args.gross)]
     cases += [("rows", s) for s in shares(args.rows)] + [("regrid", s) for s in shares(args.regrid)]
+    cases += [(m, s) for s in shares(args.grid) for m in ("grid", "grid_rigid")]
+    cases += [("mix", s) for s in shares(args.mix)]
     rows = []
     for rig, (n_lasers, n_views) in RIGS.items():
         for mode, share in cases:
