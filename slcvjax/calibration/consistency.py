@@ -33,10 +33,9 @@ import numpy as np
 
 from ..observations.problem import KIND_NAMES, Kind, Layout, kind_weights
 from ..support.persist import PersistentJit
-from .evaluate import solve_compiled
+from .evaluate import solution_linearisation
 from .linearise import chunk_bounds, flat_rows, kind_spans, observation_groups
 from .losses import ObservationTable, loss_index, robust_observations
-from .params import pad_problem
 from .result import CalibrationResult
 from .schur import schur_inverse
 
@@ -120,8 +119,7 @@ def per_observation_rows(result: CalibrationResult) -> tuple[np.ndarray, np.ndar
     that order): the sum of its rows' squared residuals (px^2), of their ``1 - h`` (the degrees of
     freedom they leave), and per row, its kind, residual and ``1 - h``, for valid rows only."""
     params, pk, masks = result.params, result.packed, result.masks
-    layout, p, padded, m = pad_problem(params, pk, masks)
-    lin = solve_compiled(p, padded, m, result.loss, result.scale, 0).linearisation
+    layout, p, padded, m, lin = solution_linearisation(params, pk, masks, result.loss, result.scale)
     loss = np.asarray(loss_index(result.loss))
     out = _leverage_jit(p, padded, m, lin.normal, loss, np.asarray(float(result.scale)))
     r, obs, kind, use, h = (np.asarray(a) for a in out)
