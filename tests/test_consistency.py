@@ -41,6 +41,52 @@ def test_leverages_sum_to_the_estimated_parameters_and_to_each_kinds_share(clean
     assert np.all((h > -1e-9) & (h < 1.0 + 1e-9))
 
 
+def _dense_leverages(params, pk, masks, normal, loss, scale):
+    """The leverages over every row of the padded problem at once (``rows_at``): the reference
+    for the chunked loop of :func:`row_leverages`."""
+    import jax
+    import jax.numpy as jnp
+
+    from slcvjax.calibration.linearise import n_observations, rows_at
+    from slcvjax.calibration.losses import robust_weights
+    from slcvjax.calibration.schur import schur_inverse
+
+    rows = rows_at(params, pk, with_jac=True)
+    w, _ = robust_weights(rows, n_observations(pk), loss, scale)
+    s_inv, d_inv, dinv_bt = schur_inverse(normal)
+    g = s_inv.shape[0]
+    jg = rows.jg * jnp.concatenate([masks.glob, jnp.zeros(1)])[rows.gidx]
+    jp = rows.jp * jnp.concatenate([masks.blocks, jnp.zeros(1)])[rows.pidx][:, None]
+    dense = jax.vmap(lambda j, i: jnp.zeros(g + 1).at[i].add(j))(jg, rows.gidx)[:, :g]
+    u = dense - jnp.einsum("nkg,nk->ng", jnp.concatenate([dinv_bt, jnp.zeros((1, 6, g))])[rows.pidx], jp)
+    d_ext = jnp.concatenate([d_inv, jnp.zeros((1, 6, 6))])[rows.pidx]
+    h = w * (jnp.einsum("ng,gh,nh->n", u, s_inv, u) + jnp.einsum("nk,nkl,nl->n", jp, d_ext, jp))
+    return rows.r, rows.obs, rows.present & rows.valid, h
+
+
+def test_chunked_leverages_equal_every_row_at_once(clean):
+    """:func:`row_leverages` visits the real rows chunk by chunk; over every padded row at once
+    the same rows, ids, flags and leverages come out (to round-off: the loop's program rounds
+    otherwise)."""
+    import jax
+
+    from slcvjax.calibration.consistency import row_leverages
+    from slcvjax.calibration.evaluate import solve_compiled
+    from slcvjax.calibration.losses import loss_index
+    from slcvjax.calibration.params import pad_problem
+
+    _, _, res = clean
+    _, p, pk, m = pad_problem(res.params, res.packed, res.masks)
+    normal = solve_compiled(p, pk, m, res.loss, res.scale, 0).linearisation.normal
+    args = (p, pk, m, normal, loss_index(res.loss), float(res.scale))
+    r, obs, _, use, h = (np.asarray(a) for a in jax.jit(row_leverages)(*args))
+    r0, obs0, use0, h0 = (np.asarray(a) for a in jax.jit(_dense_leverages)(*args))
+    assert use.sum() > 100 and np.array_equal(use, use0) and np.array_equal(obs[use], obs0[use0])
+    np.testing.assert_allclose(r[use], r0[use0], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(h[use], h0[use0], rtol=0, atol=1e-12)
+    assert np.all(r[~use] == 0.0) and np.all(h[~use] == 0.0)
+
+
 def test_clean_data_pass_the_check(clean):
     obs, _, res = clean
     unc = report(res, obs)["uncertainty"]
@@ -134,3 +180,17 @@ def test_no_laser_ends_beyond_3_of_its_reported_std(gross_seed2):
     for i, item in enumerate(unc["lasers"]):
         if item["position_std_mm"] is not None:
             assert pos[i] <= 3 * item["position_std_mm"] and ang[i] <= 3 * item["direction_std_deg"], (i, item)
+
+
+def test_normality_p_is_dagostino_pearsons_test():
+    """:func:`normality_p` (written out to spare ``import slcvjax`` scipy.stats) against
+    ``scipy.stats.normaltest`` on normal, heavy-tailed, skewed and constant-skew samples."""
+    from scipy import stats
+
+    from slcvjax.calibration.consistency import normality_p
+
+    rng = np.random.default_rng(0)
+    samples = [rng.normal(size=20), rng.normal(size=3000) * 4.0, rng.standard_t(3, 500), rng.exponential(1.0, 200)]
+    samples += [np.r_[-np.ones(15), np.ones(15)], rng.uniform(-1, 1, 1000)]
+    for z in samples:
+        assert normality_p(z) == pytest.approx(stats.normaltest(z).pvalue, rel=1e-10, abs=1e-300)

@@ -35,14 +35,12 @@ measured by ``benchmarks/consistency.py``.
 """
 
 import numpy as np
-from scipy import stats
 
-from ..observations.problem import KIND_NAMES, Kind, Layout
+from ..observations.problem import KIND_NAMES, Kind, Layout, kind_weights
 from ..support.persist import PersistentJit
-from .evaluate import solve_compiled
-from .linearise import n_observations, rows_at
-from .losses import loss_index, robust_weights
-from .params import pad_problem
+from .evaluate import solution_linearisation
+from .linearise import chunk_bounds, flat_rows, kind_spans, observation_groups
+from .losses import ObservationTable, loss_index, robust_observations
 from .result import CalibrationResult
 from .schur import schur_inverse
 
@@ -53,26 +51,69 @@ def row_leverages(params, pk, masks, normal, loss, scale):
     diagonal of ``W J H^-1 J^T``, ``H = J^T W J`` the normal matrix ``normal`` of the solution,
     ``W`` the robust loss's weights (``loss`` an index of :data:`slcvjax.calibration.losses.LOSSES`,
     ``scale`` px), frozen columns and blocks left out by ``masks``); the leverages add up to the
-    number of estimated parameters.
+    number of estimated parameters.  The rows are those of :func:`slcvjax.calibration.linearise.rows_at`,
+    in its order; a padded row is zero and does not count.
 
     With ``H`` in Schur form (``S`` the global block's Schur complement, ``D`` the pose blocks,
     ``B`` their coupling), a row's ``(j_g, j_p)`` on pose block ``b`` has
-    ``h = u^T S^-1 u + j_p^T D_b^-1 j_p`` with ``u = j_g - (D_b^-1 B_b^T)^T j_p``."""
+    ``h = u^T S^-1 u + j_p^T D_b^-1 j_p`` with ``u = j_g - (D_b^-1 B_b^T)^T j_p``.
+
+    The rows are visited chunk by chunk over each group's real observations, as the solve's
+    :func:`slcvjax.calibration.linearise.accumulate` visits them (a traced trip count), so a shape
+    bucket's padding costs nothing: the whole padded problem at once took 0.17-0.27 s of a
+    9-15-view scene's 0.25-0.4 s report (``docs/performance.md``)."""
     import jax
     import jax.numpy as jnp
 
-    rows = rows_at(params, pk, with_jac=True)
-    w, _ = robust_weights(rows, n_observations(pk), loss, scale)
     s_inv, d_inv, dinv_bt = schur_inverse(normal)
     g = s_inv.shape[0]
-    jg = rows.jg * jnp.concatenate([masks.glob, jnp.zeros(1)])[rows.gidx]
-    jp = rows.jp * jnp.concatenate([masks.blocks, jnp.zeros(1)])[rows.pidx][:, None]
-    dense = jax.vmap(lambda j, i: jnp.zeros(g + 1).at[i].add(j))(jg, rows.gidx)[:, :g]
-    coupling = jnp.concatenate([dinv_bt, jnp.zeros((1, 6, g))])[rows.pidx]
-    u = dense - jnp.einsum("nkg,nk->ng", coupling, jp)
-    d_ext = jnp.concatenate([d_inv, jnp.zeros((1, 6, 6))])[rows.pidx]
-    h = w * (jnp.einsum("ng,gh,nh->n", u, s_inv, u) + jnp.einsum("nk,nkl,nl->n", jp, d_ext, jp))
-    return rows.r, rows.obs, rows.kind, rows.present & rows.valid, h
+    glob_mask = jnp.concatenate([masks.glob, jnp.zeros(1)])
+    block_mask = jnp.concatenate([masks.blocks, jnp.zeros(1)])
+    coupling_all = jnp.concatenate([dinv_bt, jnp.zeros((1, 6, g))])
+    d_all = jnp.concatenate([d_inv, jnp.zeros((1, 6, 6))])
+    kw = kind_weights(None)
+    parts, offset = [], 0
+    for grp in observation_groups(params, pk, True, None):
+        n = grp.args[0].shape[0]
+        if n == 0:
+            continue
+        k = min(grp.chunk, n)
+        m = grp.fn(*(a[:k] for a in grp.args)).r.shape[1]  # its rows per observation (the trace alone: unused)
+        spans = kind_spans(grp.regions, n)
+        n_chunks = [(real - s + k - 1) // k for s, _, real in spans]
+
+        def body(i, carry, grp=grp, n=n, k=k, m=m, spans=spans, n_chunks=n_chunks):
+            r_out, h_out, kind_out, use_out = carry
+            start, meant, real_end = chunk_bounds(spans, n, k, i, n_chunks)
+            idx = start + jnp.arange(k)
+            present = (idx >= meant) & (idx < real_end)
+            c = grp.fn(
+                *(jax.lax.dynamic_slice_in_dim(a, start, k) for a in grp.args), spot_chunk=meant >= grp.regions[-1][0]
+            )
+            rows = flat_rows(c, present, 0)
+            t = ObservationTable(jnp.sum(rows.r.reshape(k, m) ** 2, axis=1), c.kind, c.ok & present, present, c.pidx)
+            w = robust_observations(t, loss, scale, kw)[0][rows.obs]
+            jg = rows.jg * glob_mask[rows.gidx]
+            jp = rows.jp * block_mask[rows.pidx][:, None]
+            dense = jax.vmap(lambda j, i: jnp.zeros(g + 1).at[i].add(j))(jg, rows.gidx)[:, :g]
+            u = dense - jnp.einsum("nkg,nk->ng", coupling_all[rows.pidx], jp)
+            h = w * (jnp.einsum("ng,gh,nh->n", u, s_inv, u) + jnp.einsum("nk,nkl,nl->n", jp, d_all[rows.pidx], jp))
+
+            def put(out, new):
+                new = new.reshape(k, m)
+                old = jax.lax.dynamic_slice_in_dim(out, start, k)
+                return jax.lax.dynamic_update_slice_in_dim(out, jnp.where(present[:, None], new, old), start, 0)
+
+            use = rows.present & rows.valid
+            return put(r_out, rows.r), put(h_out, h), put(kind_out, rows.kind), put(use_out, use)
+
+        zeros = jnp.zeros((n, m))
+        carry = (zeros, zeros, jnp.zeros((n, m), dtype=int), jnp.zeros((n, m), dtype=bool))
+        r, h, kind, use = jax.lax.fori_loop(0, sum(n_chunks), body, carry)
+        obs = jnp.broadcast_to(offset + jnp.arange(n)[:, None], (n, m))
+        parts.append(tuple(a.reshape(-1) for a in (r, obs, kind, use, h)))
+        offset += n
+    return tuple(jnp.concatenate(p) for p in zip(*parts, strict=True))
 
 
 _leverage_jit = PersistentJit(row_leverages, "row_leverages")
@@ -83,8 +124,7 @@ def per_observation_rows(result: CalibrationResult) -> tuple[np.ndarray, np.ndar
     that order): the sum of its rows' squared residuals (px^2), of their ``1 - h`` (the degrees of
     freedom they leave), and per row, its kind, residual and ``1 - h``, for valid rows only."""
     params, pk, masks = result.params, result.packed, result.masks
-    layout, p, padded, m = pad_problem(params, pk, masks)
-    lin = solve_compiled(p, padded, m, result.loss, result.scale, 0).linearisation
+    layout, p, padded, m, lin = solution_linearisation(params, pk, masks, result.loss, result.scale)
     loss = np.asarray(loss_index(result.loss))
     out = _leverage_jit(p, padded, m, lin.normal, loss, np.asarray(float(result.scale)))
     r, obs, kind, use, h = (np.asarray(a) for a in out)
@@ -113,6 +153,8 @@ def final_check(result: CalibrationResult, table, outlier: np.ndarray, level: fl
     flags.  Returns ``{"level", "tests", "failed": [...], "laser_scale": {laser: factor}}``: each
     failed test's group and p-value, and for a group's spread its variance ratio to the rest of
     its kind (``ratio``), the two degrees of freedom (``dof``) and the std factor."""
+    from scipy.special import fdtrc  # here: scipy.stats took 0.3-0.9 s of ``import slcvjax``
+
     level = result.options.consistency_level if level is None else level
     norm, kind, ok, view, board, laser, _ = table
     sq, dof, (row_obs, row_kind, row_r, row_free, layout, n_pad) = per_observation_rows(result)
@@ -135,7 +177,7 @@ def final_check(result: CalibrationResult, table, outlier: np.ndarray, level: fl
         if nu_g >= 1.0 and nu_rest >= MIN_REST_DOF and s_rest > 0.0:
             f = (s_g / nu_g) / (s_rest / nu_rest)
             ratio = s_g / nu_g / _kind_sigma(result, k) ** 2  # against the noise the std assume
-            spread[name] = (f, nu_g, nu_rest, float(stats.f.sf(f, nu_g, nu_rest)), ratio)
+            spread[name] = (f, nu_g, nu_rest, float(fdtrc(nu_g, nu_rest, f)), ratio)  # P(F >= f)
     # the kinds' shape, per row: the rows of the kept observations
     kept_obs = np.zeros(n_pad, bool)
     kept_obs[_padded_ids(layout, n_pad)[keep]] = True
@@ -144,11 +186,13 @@ def final_check(result: CalibrationResult, table, outlier: np.ndarray, level: fl
         sel = kept_obs[row_obs] & (row_kind == k) & (row_free > 1e-6)
         if sel.sum() >= 20:
             z = row_r[sel] / (np.sqrt(_kind_sigma(result, k) ** 2 * row_free[sel]))
+            d = z - z.mean()
+            m2 = np.mean(d**2)
             shape[KIND_NAMES[k]] = {
                 "rows": int(sel.sum()),
-                "skew": float(stats.skew(z)),
-                "excess_kurtosis": float(stats.kurtosis(z)),
-                "p_value": float(stats.normaltest(z).pvalue),
+                "skew": float(np.mean(d**3) / m2**1.5),
+                "excess_kurtosis": float(np.mean(d**4) / m2**2 - 3.0),
+                "p_value": normality_p(z),
             }
     n_tests = len(spread)
     families = {_family(name) for name in spread}
@@ -174,6 +218,39 @@ def final_check(result: CalibrationResult, table, outlier: np.ndarray, level: fl
             if name.startswith("laser "):
                 scale[int(name.split()[1])] = factor
     return {"level": level, "tests": n_tests, "failed": failed, "shape": shape, "laser_scale": scale}
+
+
+def normality_p(z: np.ndarray) -> float:
+    """D'Agostino and Pearson's omnibus test that ``z`` (at least 20 values) is normal: the p-value
+    of ``K^2 = Z_skew^2 + Z_kurt^2``, chi-squared with 2 degrees of freedom under the null
+    (so ``p = exp(-K^2 / 2)``).  ``Z_skew``: D'Agostino's (1970) transform of the sample skewness
+    ``sqrt(b1)``; ``Z_kurt``: Anscombe and Glynn's (1983) of the sample kurtosis ``b2`` (both as
+    D'Agostino, Belanger and D'Agostino, The American Statistician 44 (1990) 316, give them).
+    The same test as ``scipy.stats.normaltest`` (agreeing to round-off, tested) without importing
+    ``scipy.stats``."""
+    x = np.asarray(z, dtype=float)
+    n = float(x.size)
+    d = x - x.mean()
+    m2, m3, m4 = (np.mean(d**2), np.mean(d**3), np.mean(d**4))
+    # skewness
+    y = m3 / m2**1.5 * np.sqrt((n + 1) * (n + 3) / (6 * (n - 2)))
+    beta2 = 3 * (n**2 + 27 * n - 70) * (n + 1) * (n + 3) / ((n - 2) * (n + 5) * (n + 7) * (n + 9))
+    w2 = -1 + np.sqrt(2 * (beta2 - 1))
+    delta = 1 / np.sqrt(0.5 * np.log(w2))
+    alpha = np.sqrt(2 / (w2 - 1))
+    ya = (y if y != 0 else 1.0) / alpha  # a skewness of exactly 0 taken as y = 1, as scipy does
+    z_skew = delta * np.log(ya + np.sqrt(ya**2 + 1))
+    # kurtosis
+    b2 = m4 / m2**2
+    mean_b2 = 3 * (n - 1) / (n + 1)
+    var_b2 = 24 * n * (n - 2) * (n - 3) / ((n + 1) ** 2 * (n + 3) * (n + 5))
+    xk = (b2 - mean_b2) / np.sqrt(var_b2)
+    skew_b2 = 6 * (n**2 - 5 * n + 2) / ((n + 7) * (n + 9)) * np.sqrt(6 * (n + 3) * (n + 5) / (n * (n - 2) * (n - 3)))
+    a = 6 + 8 / skew_b2 * (2 / skew_b2 + np.sqrt(1 + 4 / skew_b2**2))
+    t = 1 + xk * np.sqrt(2 / (a - 4))
+    cube = np.sign(t) * np.cbrt((1 - 2 / a) / abs(t)) if t != 0 else np.nan  # undefined, as in scipy
+    z_kurt = (1 - 2 / (9 * a) - cube) / np.sqrt(2 / (9 * a))
+    return float(np.exp(-0.5 * (z_skew**2 + z_kurt**2)))
 
 
 def _family(name: str) -> str:

@@ -18,10 +18,10 @@ from jaxtyping import Array, Float, Int
 from ..observations.problem import KIND_NAMES, Kind, Layout, Packed, kinds_of
 from ..support.persist import PersistentJit
 from .base import CalibrationError
-from .evaluate import linearisation_at, per_observation, solve_compiled
+from .evaluate import linearisation_at, per_observation, solution_linearisation, solve_compiled
 from .laser_fit import RAYLEIGH_MEDIAN
 from .linearise import Linearisation
-from .params import Masks, Params, make_masks, pad_masks, pad_problem
+from .params import Masks, Params, make_masks, pad_masks
 from .schur import Normal, leverage_shares, raw_normal, schur_inverse
 
 
@@ -206,8 +206,7 @@ def kind_linearisations(params: Params, pk: Packed, masks: Masks, loss: str, sca
     """The padded layout, the linearisation at ``params`` with every kind weighted 1 (as the
     solve weighs them), and one per kind with that kind alone (the compiled solve with no
     step: nothing new compiles)."""
-    layout, p, padded, m = pad_problem(params, pk, masks)
-    full = solve_compiled(p, padded, m, loss, scale, 0).linearisation
+    layout, p, padded, m, full = solution_linearisation(params, pk, masks, loss, scale)
     # one kind's rows alone: the others' counted as padding, which the sums skip
     kinds = kinds_of(pk)
     parts = [

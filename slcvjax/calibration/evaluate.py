@@ -58,6 +58,21 @@ def linearisation_at(
 
 
 _TABLES = Recent(4)  # the last calls of table_of
+_SOLUTIONS = Recent(2)  # the last calls of solution_linearisation
+
+
+def solution_linearisation(params: Params, pk: Packed, masks: Masks, loss: str, scale):
+    """The padded problem (:func:`slcvjax.calibration.params.pad_problem`: layout, parameters,
+    arrays, masks) and its :class:`slcvjax.calibration.linearise.Linearisation` at ``params``
+    with every kind weighted 1 (the compiled solve with no step).  The last two are kept: the
+    covariance at the end of a calibration and the report's final check linearise the same
+    solution (found again by the identity of ``params``, ``pk`` and ``masks``)."""
+
+    def compute():
+        layout, p, padded, m = pad_problem(params, pk, masks)
+        return layout, p, padded, m, solve_compiled(p, padded, m, loss, scale, 0).linearisation
+
+    return _SOLUTIONS.get((params, pk, masks), (loss, float(scale)), compute)
 
 
 def table_of(params: Params, pk: Packed):
