@@ -150,9 +150,11 @@ def _kind_sigma(result: CalibrationResult, k: Kind) -> float:
 def final_check(result: CalibrationResult, table, outlier: np.ndarray, level: float | None = None) -> dict:
     """The final check of ``result`` (the module's docstring): ``table`` is the report's
     per-observation table ``(norm, kind, ok, view, board, laser, index)`` and ``outlier`` its
-    flags.  Returns ``{"level", "tests", "failed": [...], "laser_scale": {laser: factor}}``: each
-    failed test's group and p-value, and for a group's spread its variance ratio to the rest of
-    its kind (``ratio``), the two degrees of freedom (``dof``) and the std factor."""
+    flags.  Returns ``{"level", "tests", "failed": [...], "shape": {kind: {...}}, "laser_scale":
+    {laser: factor}}``: each failed test's group and p-value, its variance ratio to the rest of its
+    kind (``ratio``), the two degrees of freedom (``dof``) and the std factor; each kind's shape
+    (rows, skew, excess kurtosis, normality p-value); the failed lasers' std factors (by their
+    index in the file)."""
     from scipy.special import fdtrc  # here: scipy.stats took 0.3-0.9 s of ``import slcvjax``
 
     level = result.options.consistency_level if level is None else level
