@@ -13,7 +13,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..observations.problem import Packed, kind_weights
-from ..support.persist import _EXECUTE
 from .evaluate import solve_compiled
 from .lm import LMResult, solve
 from .losses import loss_index
@@ -104,14 +103,7 @@ def solve_vmap(jobs: list[SolveJob], loss: str, max_steps: int, size: int | None
         if sharding is not None:
             # every process holds the whole batch (the same on each): each device takes its rows
             batch = jax.tree_util.tree_map(functools.partial(_place, sharding=sharding), batch)
-        # run to its end under the lock of the compiled programs (see slcvjax.support.persist): a sharded
-        # solve still running on two CPU devices while the host steps ran the next program wedged XLA's
-        # CPU thread pool for good (benchmarks/bench_throughput.py, JAX_NUM_CPU_DEVICES=2, every thread
-        # asleep on a futex)
-        with _EXECUTE:
-            res = jax.block_until_ready(
-                solve_batched(*batch, loss=jnp.asarray(loss_index(loss)), max_steps=jnp.asarray(max_steps))
-            )
+        res = solve_batched(*batch, loss=jnp.asarray(loss_index(loss)), max_steps=jnp.asarray(max_steps))
         if not res.cost.is_fully_addressable:  # several hosts: every process gets every trial
             from jax.experimental import multihost_utils
 
