@@ -120,7 +120,7 @@ def _cone_mesh(mirror, n_az: int = 48, n_s: int = 8):
     return pts[..., 0], pts[..., 1], pts[..., 2]
 
 
-def _sheet_lines(sheets, j: int, length: float, n: int = 24) -> list[np.ndarray]:
+def sheet_lines(sheets, j: int, length: float, n: int = 24) -> list[np.ndarray]:
     """Line segments (each (2, 3) or (n+1, 3), mm) that draw sheet ``j`` of ``sheets``: a cone's
     generatrices from its apex to ``length`` mm and the circle joining their ends; a plane's
     (half-angle 90 deg) spokes and rim of a disc of radius ``length`` about its point."""
@@ -207,7 +207,7 @@ def plot_rig(rig, path, walls=(), truth=None, title: str | None = None, omit=())
     for j in range(rig.sheets.apex.shape[0] if rig.has_sheets else 0):
         e = int(rig.sheet_elements[j])
         kind = rig.sheets.kinds[j]
-        lines = _sheet_lines(rig.sheets, j, 150.0)
+        lines = sheet_lines(rig.sheets, j, 150.0)
         for k, seg in enumerate(lines):
             label = f"laser {e} ({'line' if kind == 'plane' else 'ring'})" if k == 0 and n_el <= 12 else None
             ax.plot(*seg.T, color=colors[e], lw=0.6, alpha=0.8, label=label)

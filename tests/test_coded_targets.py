@@ -104,11 +104,11 @@ def test_markers_whose_place_contradicts_their_ids_are_dropped():
     spec = {"type": "charuco", "dictionary": "DICT_4X4_50", "squares": [5, 3], "square_mm": 20.0, "marker_mm": 15.0}
     board = coded.CodedBoard.of("b", spec)
     H = np.array([[2.0, 0.1, 30.0], [-0.05, 1.8, 40.0], [1e-4, 0.0, 1.0]])
-    found = {k: coded._apply(H, board.marker_corners[k]) for k in range(len(board.ids))}
-    assert set(coded._consistent(board, found)) == set(found)
+    found = {k: coded.apply_affine(H, board.marker_corners[k]) for k in range(len(board.ids))}
+    assert set(coded.markers_consistent(board, found)) == set(found)
     swapped = dict(found)
     swapped[1], swapped[5] = found[5], found[1]  # two ids read at each other's place
-    kept = coded._consistent(board, swapped)
+    kept = coded.markers_consistent(board, swapped)
     assert 1 not in kept and 5 not in kept and len(kept) == len(found) - 2
 
 

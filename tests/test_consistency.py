@@ -119,9 +119,9 @@ def test_a_laser_noisier_than_its_kind_is_flagged_and_its_std_scaled():
     assert all("std_scale" not in unc["lasers"][i] for i in (0, 1, 3, 4))
     # the factor is the laser's spread against the spots' sigma the covariance assumed
     sq, dof, _ = per_observation_rows(res)
-    from slcvjax.calibration.report import _obs_table
+    from slcvjax.calibration.report import obs_table
 
-    norm, kind, ok, view, board, laser, index = _obs_table(res)
+    norm, kind, ok, view, board, laser, index = obs_table(res)
     sel = ok & (kind == 1) & (laser == 2)
     assert factor == pytest.approx(np.sqrt(sq[sel].sum() / dof[sel].sum()) / res.kind_sigma["spot"], rel=1e-9)
     plain = report(sj.calibrate(obs, loss="linear"), obs)["uncertainty"]

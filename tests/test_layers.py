@@ -135,6 +135,7 @@ CALIBRATION = [
     "bound",
     "implicit",
     "stored",
+    "consistency",
     "report",
     "model_selection",
     "calibrate",

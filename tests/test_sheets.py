@@ -139,11 +139,11 @@ def test_the_rig_plot_draws_each_sheet_on_its_own_surface(tmp_path):
     """plot_rig's lines for a line laser (a disc in its plane) and a ring laser (its cone's
     generatrices and end circle) lie on their sheets: G = 0 at every vertex."""
     from slcvjax.observations.simulate import paper_rig, sheet_rig
-    from slcvjax.plots import _sheet_lines, plot_rig
+    from slcvjax.plots import plot_rig, sheet_lines
 
     rig, _ = sheet_rig(paper_rig(), ("cone", "point", "plane"))
     for j in range(rig.sheets.apex.shape[0]):
-        pts = np.concatenate(_sheet_lines(rig.sheets, j, 150.0))
+        pts = np.concatenate(sheet_lines(rig.sheets, j, 150.0))
         sh = rig.sheets
         g = np.array([float(sheet_value(jnp.asarray(x), sh.apex[j], sh.axis[j], sh.half_angle[j])) for x in pts])
         assert np.abs(g).max() < 1e-9, g

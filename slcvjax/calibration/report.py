@@ -27,7 +27,7 @@ from .result import CalibrationResult
 from .stored import problem_json
 
 
-def _obs_table(result: CalibrationResult):
+def obs_table(result: CalibrationResult):
     """Per observation: kind, 2D residual norm (px; a stripe sample's and a rim pixel's distance
     from their curve), validity, its (view, board, laser) labels (a laser by its index in the
     file) and its index in its view (a dot's in its board, a spot's among the view's spots, a
@@ -91,7 +91,7 @@ def report(result: CalibrationResult, obs: Observations | None = None) -> dict:
     ``obs``: the observations the result was calibrated from, which name its views, boards and
     lasers (default: those the result carries, ``result.observations``)."""
     obs = _observations(result, obs)
-    norm, kind, ok, view, board, laser, index = _obs_table(result)
+    norm, kind, ok, view, board, laser, index = obs_table(result)
     sigma = float(result.cov.sigma)
     point = (kind == Kind.DOT) | (kind == Kind.SPOT) | (kind == Kind.STRIPE)
     # beyond the policy's outlier sigmas of its own kind (the pooled sigma where the kind has none)

@@ -82,7 +82,7 @@ def print_report(cal, name: str = "") -> None:
     if cal.rig.camera.telecentric:
         log.info(f"camera     telecentric (fx, fy in px per {cal.rig.camera.unit:g} mm; its depth is the gauge, held)")
     if unc.get("status"):
-        log.warning(f"WARNING    {unc['status']}")
+        log.info(f"WARNING    {unc['status']}")
     cs = unc["camera_std"]
     log.info(f"camera std fx {fmt(cs['fx'])} fy {fmt(cs['fy'])} cx {fmt(cs['cx'])} cy {fmt(cs['cy'])} px")
     ms = unc["mirror_std"]

@@ -25,7 +25,7 @@ in the original image.  Per image (:func:`detect_coded`):
 3. **Markers**: ``cv2.aruco.ArucoDetector`` (the board's dictionary; ``DICT_APRILTAG_36h11`` for
    an AprilGrid), every id looked up among the setup's boards (their ids are disjoint, so an id
    names its board); an id of no board is dropped.  A marker is kept only where the board's
-   geometry agrees with its neighbours (:func:`_consistent`): the affine map of each detected
+   geometry agrees with its neighbours (:func:`markers_consistent`): the affine map of each detected
    marker (its four corners against their board positions) predicts where every other marker of
    its board lies; a marker that no other marker within ``NEIGHBOUR_SQUARES`` squares places within
    ``AGREE_MARKERS`` of a square's size is a misread id or a false marker, and is dropped (a lone
@@ -274,7 +274,7 @@ def _homography(board_xy: np.ndarray, pano_xy: np.ndarray) -> np.ndarray:
     return cv2.getPerspectiveTransform(np.float32(board_xy), np.float32(pano_xy))
 
 
-def _apply(H: np.ndarray, xy: np.ndarray) -> np.ndarray:
+def apply_affine(H: np.ndarray, xy: np.ndarray) -> np.ndarray:
     p = np.concatenate([np.asarray(xy, float), np.ones((*np.shape(xy)[:-1], 1))], -1) @ H.T
     return p[..., :2] / p[..., 2:]
 
@@ -286,7 +286,7 @@ def _h_jacobian(H: np.ndarray, xy: np.ndarray) -> np.ndarray:
     return (H[None, :2, :2] - x[:, :, None] * H[None, 2:3, :2]) / p[:, 2, None, None]
 
 
-def _consistent(board: CodedBoard, found: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+def markers_consistent(board: CodedBoard, found: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
     """The markers of ``found`` (index into ``board.ids`` -> (4, 2) pano corners) that the board's
     geometry confirms: each marker's affine map places some other marker within
     ``NEIGHBOUR_SQUARES`` squares of it (board units) within ``AGREE_MARKERS`` squares (in that marker's
@@ -310,7 +310,7 @@ def _consistent(board: CodedBoard, found: dict[int, np.ndarray]) -> dict[int, np
     }
 
     def agree(a: int, b: int) -> bool:
-        err = np.linalg.norm(_apply(hs[a], centres_b[b][None])[0] - centres_p[b])
+        err = np.linalg.norm(apply_affine(hs[a], centres_b[b][None])[0] - centres_p[b])
         return bool(err < AGREE_MARKERS * board.unit * scale[a])
 
     keep = {}
@@ -344,7 +344,7 @@ def _charuco_corners(board: CodedBoard, markers: dict[int, np.ndarray]):
         if not adj:
             continue
         xy = board.points[j, None, :2]
-        pred = np.stack([_apply(hs[m], xy)[0] for m in adj])
+        pred = np.stack([apply_affine(hs[m], xy)[0] for m in adj])
         scale = [math.sqrt(abs(cv2.contourArea(np.float32(markers[m])))) / spec["marker_mm"] for m in adj]
         if len(adj) > 1 and np.linalg.norm(pred[0] - pred[1]) > AGREE * board.unit * min(scale):
             continue
@@ -516,7 +516,7 @@ def detect_coded(
             widest gap); None: the seam at azimuth 0.
         disc: the mirror's disc (:func:`slcvjax.images.detect.find_mirror`), found here where None.
     """
-    from .detect import find_mirror
+    from .disc import find_mirror
 
     grey = bgr if bgr.ndim == 2 else cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)
     green = (bgr if bgr.ndim == 2 else bgr[:, :, 1]).astype(float)
@@ -548,7 +548,7 @@ def detect_coded(
     g64 = grey.astype(float)
     out, problems, counts = dict(empty), [], {}
     for b in boards:
-        markers = _consistent(b, found[b.name])
+        markers = markers_consistent(b, found[b.name])
         dropped = len(found[b.name]) - len(markers)
         if dropped:
             problems.append(f"{b.name}: {dropped} marker(s) left out (their place disagrees with their neighbours')")
@@ -605,7 +605,7 @@ def detect_direct(bgr: np.ndarray, spec: dict) -> tuple[np.ndarray, np.ndarray] 
             return None
         owner = {int(i): k for k, i in enumerate(board.ids)}
         found = {owner[int(i)]: c.reshape(4, 2) for c, i in zip(corners, mids.ravel(), strict=True) if int(i) in owner}
-        found = _consistent(board, found)
+        found = markers_consistent(board, found)
         if not found:
             return None
         ids, px, _ = _april_corners(board, found)

@@ -18,9 +18,9 @@ import numpy as np
 
 from ..geometry.pose import Pose, so3_exp
 from ..geometry.rig import Rig, project_board_points
-from ..observations.simulate import Scene, _chess_poses, grid_points
+from ..observations.simulate import Scene, draw_chess_poses, grid_points
 from ..observations.targets import aprilgrid_tag_corners
-from .render import RenderOptions, _cata_ray, _wall_hit
+from .render import RenderOptions, cata_ray, wall_hit
 from .targetbox import box_setup
 
 CHESS = (9, 6, 25.0)  # the direct views' chessboard: inner corners and square (simulate's)
@@ -73,7 +73,7 @@ def coded_box_scene(
     boards = {b: np.asarray(setup.boards[b].points, float) for b in walls}
     chess = grid_points(*chessboard[:2], chessboard[2])
     boards["chess"] = chess
-    chess_poses = _chess_poses(cam, chess, n_chess_views, np.random.default_rng(11)) if n_chess_views else []
+    chess_poses = draw_chess_poses(cam, chess, n_chess_views, np.random.default_rng(11)) if n_chess_views else []
     info = {
         "preset": target,
         "box": setup.extra["box"],
@@ -89,8 +89,8 @@ def _first_wall(cam, mirror, uv, walls_R, walls_t, body):
     (meets the mirror, misses the sensor's body, meets a wall)."""
 
     def one(p):
-        o, d, _, seen = _cata_ray(cam, mirror, p, body[0], body[1])
-        w, hit, xy, _ = _wall_hit(o, d, walls_R, walls_t)
+        o, d, _, seen = cata_ray(cam, mirror, p, body[0], body[1])
+        w, hit, xy, _ = wall_hit(o, d, walls_R, walls_t)
         return w, xy, seen & hit
 
     return jax.vmap(one)(uv)

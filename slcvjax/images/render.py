@@ -112,7 +112,7 @@ def _sample_grid(width: int, height: int, ss: int) -> jnp.ndarray:
     return jnp.asarray(np.stack([u, v], axis=-1), dtype=float)
 
 
-def _wall_hit(origin, direction, walls_R, walls_t):
+def wall_hit(origin, direction, walls_R, walls_t):
     """Nearest wall ahead of a ray: (wall index, hit?, board-frame xy, camera-frame point)."""
 
     def one(R, t):
@@ -132,7 +132,7 @@ def _body_hit(origin, direction, mirror: ConeMirror, radius, gap):
     return body_clearance(origin, direction, mirror, radius, gap) < 0.0
 
 
-def _cata_ray(cam, mirror, uv, body_radius, body_gap):
+def cata_ray(cam, mirror, uv, body_radius, body_gap):
     """The reflected ray of one sample, and whether it is seen (meets the mirror, misses the body)."""
     ray = back_project(cam, mirror, uv)
     body = _body_hit(ray.point, ray.direction, mirror, body_radius, body_gap)
@@ -174,7 +174,7 @@ def _stripe_light(x, normal, apex, axis, half_angle, fan, on, sopts):
 def _cata_shade(
     origin, direction, valid, seen, walls_R, walls_t, dots, spots, spot_wall, spot_on, opts, sheets=None, drawing=None
 ):
-    w, hit, xy, x = _wall_hit(origin, direction, walls_R, walls_t)
+    w, hit, xy, x = wall_hit(origin, direction, walls_R, walls_t)
     if drawing is None:  # the walls' dots
         d2 = jnp.min(jnp.sum((dots[w] - xy) ** 2, axis=1))
         albedo = jnp.where(d2 < opts[0] ** 2, DOT, WALL)
@@ -227,7 +227,7 @@ def chess_sample(d, ok, R, t, cols, rows, square):
 
 @jax.jit
 def _cata_rays(cam, mirror, samples, body):
-    f = jax.vmap(lambda uv: _cata_ray(cam, mirror, uv, body[0], body[1]))
+    f = jax.vmap(lambda uv: cata_ray(cam, mirror, uv, body[0], body[1]))
     return jax.lax.map(f, samples)
 
 
@@ -258,8 +258,8 @@ def _chess_band(rays, R, t, grid):
 
 @jax.jit
 def _fine_rays(cam, mirror, body, centres, offsets):
-    """The reflected ray of each sample of each cell: (m, k) of :func:`_cata_ray`'s four fields."""
-    f = jax.vmap(jax.vmap(lambda uv: _cata_ray(cam, mirror, uv, body[0], body[1])))
+    """The reflected ray of each sample of each cell: (m, k) of :func:`cata_ray`'s four fields."""
+    f = jax.vmap(jax.vmap(lambda uv: cata_ray(cam, mirror, uv, body[0], body[1])))
     return f(centres[:, None, :] + offsets[None])
 
 

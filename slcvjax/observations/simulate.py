@@ -178,7 +178,7 @@ def _box_walls(
     return boards, poses
 
 
-def _chess_poses(camera: Camera, board: np.ndarray, n: int, rng: np.random.Generator) -> list[Pose]:
+def draw_chess_poses(camera: Camera, board: np.ndarray, n: int, rng: np.random.Generator) -> list[Pose]:
     """Random direct chessboard poses with every corner in the image."""
     poses: list[Pose] = []
     centre = board.mean(axis=0)
@@ -239,7 +239,7 @@ def box_scene(rig: Rig, views: np.ndarray, half_width: float = PAPER_HALF_WIDTH,
         T_cam_box = Pose(so3_exp(jnp.asarray(v[:3])), jnp.asarray(v[3:])).inverse()
         box_poses.append({f"wall{j}": T_cam_box @ T_box_walls[j] for j in range(4)})
     chess = grid_points(9, 6, 25.0)
-    chess_poses = _chess_poses(rig.camera, chess, n_chess_views, np.random.default_rng(11))
+    chess_poses = draw_chess_poses(rig.camera, chess, n_chess_views, np.random.default_rng(11))
     boards = dict(boards)
     boards["chess"] = chess
     info = {
