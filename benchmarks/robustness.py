@@ -104,16 +104,22 @@ def gross(obs, share: float, rng) -> tuple[object, set]:
     return obs, wrong
 
 
-def shift_rows(obs, share: float, rng) -> tuple[object, set]:
-    """``obs`` with, in ``share`` of its views, one row of its best-seen board labelled one row
-    off: each dot of the row whose neighbour one row up is seen takes that neighbour's pixel."""
-    wrong = set()
+def _best_boards(obs, share: float, rng):
+    """In ``share`` of the views (drawn by ``rng``), the best-seen board: (view, name, its pixels
+    and seen mask, which the caller edits in place, and the board's points)."""
     n = int(round(share * len(obs.views)))
     for v in rng.choice(len(obs.views), size=n, replace=False):
         view = obs.views[v]
         b = max(view.boards, key=lambda name: int(view.boards[name][1].sum()))
         px, seen = view.boards[b]
-        pts = obs.boards[b]
+        yield view, b, px, seen, obs.boards[b]
+
+
+def shift_rows(obs, share: float, rng) -> tuple[object, set]:
+    """``obs`` with, in ``share`` of its views, one row of its best-seen board labelled one row
+    off: each dot of the row whose neighbour one row up is seen takes that neighbour's pixel."""
+    wrong = set()
+    for view, b, px, seen, pts in _best_boards(obs, share, rng):
         ys = np.unique(np.round(pts[:, 1], 6))
         cols = np.round(pts[:, 0], 6)
         pairs_by_row = []
@@ -136,12 +142,7 @@ def shift_grid(obs, share: float, rng) -> tuple[object, set]:
     off: every dot whose neighbour one row up is seen takes that neighbour's pixel, and the dots
     of the top row seen become unseen (a grid placed one row off as a whole)."""
     wrong = set()
-    n = int(round(share * len(obs.views)))
-    for v in rng.choice(len(obs.views), size=n, replace=False):
-        view = obs.views[v]
-        b = max(view.boards, key=lambda name: int(view.boards[name][1].sum()))
-        px, seen = view.boards[b]
-        pts = obs.boards[b]
+    for view, b, px, seen, pts in _best_boards(obs, share, rng):
         ys = np.round(pts[:, 1], 6)
         rows = np.unique(ys)
         cols = np.round(pts[:, 0], 6)
