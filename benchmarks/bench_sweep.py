@@ -34,19 +34,25 @@ from slcvjax.calibration.params import Params, make_masks
 from slcvjax.observations.problem import pack, stack_poses
 
 
+def perturbed_truth(truth, pk, seed: int) -> Params:
+    """The joint solve's start of trial ``seed``: the simulated truth (rig, board and direct-view
+    poses of the packed problem ``pk``) moved by 1e-3 in every tangent coordinate."""
+    poses = stack_poses([truth.board_poses[v][b] for v, b in pk.pose_keys])
+    chess = stack_poses([truth.calibration_view_poses[c] for c in pk.chess_keys])
+    p_true = Params(truth.rig, poses, chess)
+    rng = np.random.default_rng(10_000 + seed)
+    dg = rng.normal(0, 1e-3, p_true.n_global)
+    dp = rng.normal(0, 1e-3, (p_true.n_blocks, 6))
+    return p_true.retract(jnp.asarray(dg), jnp.asarray(dp))
+
+
 def trials(n: int):
     scene = make_scene("paper")
     starts, packs = [], []
     for seed in range(n):
         obs, truth = simulate(scene, noise=0.5, seed=seed)
         pk = pack(obs)
-        poses = stack_poses([truth.board_poses[v][b] for v, b in pk.pose_keys])
-        chess = stack_poses([truth.calibration_view_poses[c] for c in pk.chess_keys])
-        p_true = Params(truth.rig, poses, chess)
-        rng = np.random.default_rng(10_000 + seed)
-        dg = rng.normal(0, 1e-3, p_true.n_global)
-        dp = rng.normal(0, 1e-3, (p_true.n_blocks, 6))
-        starts.append(p_true.retract(jnp.asarray(dg), jnp.asarray(dp)))
+        starts.append(perturbed_truth(truth, pk, seed))
         packs.append(pk.arrays())
     masks = make_masks(starts[0])
     return starts, packs, masks

@@ -40,12 +40,10 @@ from pathlib import Path
 
 def _trials(rig: str, n: int):
     """``n`` trials of ``rig``: observations, and the perturbed-truth starts of the joint solve."""
-    import jax.numpy as jnp
-    import numpy as np
+    from bench_sweep import perturbed_truth  # imports JAX: here, once the devices are set
 
     from slcvjax import make_scene, simulate
-    from slcvjax.calibration.params import Params
-    from slcvjax.observations.problem import pack, stack_poses
+    from slcvjax.observations.problem import pack
 
     if rig == "preset":
         scene, noise = make_scene("paper"), 0.5
@@ -57,14 +55,8 @@ def _trials(rig: str, n: int):
     for seed in range(n):
         o, truth = simulate(scene, noise=noise, seed=seed)
         pk = pack(o)
-        poses = stack_poses([truth.board_poses[v][b] for v, b in pk.pose_keys])
-        chess = stack_poses([truth.calibration_view_poses[c] for c in pk.chess_keys])
-        p_true = Params(truth.rig, poses, chess)
-        rng = np.random.default_rng(10_000 + seed)
-        dg = rng.normal(0, 1e-3, p_true.n_global)
-        dp = rng.normal(0, 1e-3, (p_true.n_blocks, 6))
         obs.append(o)
-        starts.append(p_true.retract(jnp.asarray(dg), jnp.asarray(dp)))
+        starts.append(perturbed_truth(truth, pk, seed))
         packs.append(pk.arrays())
     return obs, starts, packs
 
